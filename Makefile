@@ -1,0 +1,34 @@
+# The two set-up commands of the README. Both create/refresh .venv from scratch on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum | cut -d' ' -f1)
+# Each pytest worker gets its own Warp kernel cache (see tests/conftest.py).
+PYTEST_ARGS ?= -n 2
+
+.PHONY: demo test bench install clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --upgrade pip
+
+$(STAMP): $(PY) pyproject.toml constraints.txt
+	$(PIP) install -c constraints.txt torch==2.13.0
+	$(PIP) install -c constraints.txt -e '.[test,bench]'
+	rm -f $(VENV)/.installed-* && touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m scenes paper_cubic --out demo_paper_cubic.rrd --iters 300
+	$(PY) -m scenes paper_quadratic --out demo_paper_quadratic.rrd --iters 300
+
+test: $(STAMP)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) benchmarks/roots.py
+
+clean:
+	rm -rf $(VENV) *.rrd .pytest_cache

@@ -1,0 +1,239 @@
+"""Batched numpy and torch access to the robust root solver of :mod:`kernels.roots`.
+
+Every function accepts coefficients with any number of leading batch dimensions and returns
+arrays with the same leading shape. There is one implementation of the solver (Warp, float64);
+these functions only validate input, launch its kernels and reshape the output.
+
+Example:
+    >>> import numpy as np
+    >>> from collision.roots import solve_cubic
+    >>> solve_cubic(np.array([1.0, -6.0, 11.0, -6.0]))      # (t-1)(t-2)(t-3)
+    array([1.+0.j, 2.+0.j, 3.+0.j])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kernels import roots as _k
+
+DEFAULT_T_MAX = _k.DEFAULT_T_MAX
+DEFAULT_MAX_DERIVATIVE = _k.DEFAULT_MAX_DERIVATIVE
+
+__all__ = [
+    "DEFAULT_MAX_DERIVATIVE",
+    "DEFAULT_T_MAX",
+    "cubic_root_jacobian",
+    "cubic_roots",
+    "quadratic_root_jacobian",
+    "quadratic_roots",
+    "solve_cubic",
+    "solve_quadratic",
+]
+
+_DEVICE = "cpu"
+_initialised = False
+
+
+def _init() -> None:
+    global _initialised
+    if not _initialised:
+        wp.config.quiet = True
+        wp.init()
+        _initialised = True
+
+
+def _check_coefficients(p, n: int, name: str = "p") -> np.ndarray:
+    """Validated float64 copy of ``p`` with last dimension ``n``."""
+    arr = np.asarray(p)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise ValueError(f"{name}: expected a numeric array of coefficients, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr):
+        raise ValueError(f"{name}: coefficients must be real, got complex dtype {arr.dtype}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if arr.ndim == 0 or arr.shape[-1] != n:
+        raise ValueError(f"{name}: expected shape (..., {n}), got {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        idx = np.argwhere(bad)
+        shown = ", ".join(f"{name}[{', '.join(map(str, i))}]={arr[tuple(i)]!r}" for i in idx[:5])
+        more = f" (and {len(idx) - 5} more)" if len(idx) > 5 else ""
+        raise ValueError(f"{name}: coefficients must be finite; non-finite entries: {shown}{more}")
+    return arr
+
+
+def _check_positive(value: float, name: str) -> float:
+    v = float(value)
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list):
+    _init()
+    flat = coefficients.reshape(-1, coefficients.shape[-1])
+    count = flat.shape[0]
+    outs = [wp.empty(count, dtype=dtype, device=_DEVICE) for dtype in outputs]
+    if count == 0:
+        return [np.zeros((0,) + tuple(o.dtype._shape_), dtype=np.float64) for o in outs]
+    coef = wp.array(flat, dtype=coef_type, device=_DEVICE)
+    wp.launch(kernel, dim=count, inputs=[coef, *[wp.float64(s) for s in scalars]], outputs=outs, device=_DEVICE)
+    return [o.numpy() for o in outs]
+
+
+def _to_complex(flat_roots: np.ndarray, lead_shape: tuple, slots: int) -> np.ndarray:
+    pairs = flat_roots.reshape(lead_shape + (slots, 2))
+    return pairs[..., 0] + 1j * pairs[..., 1]
+
+
+def solve_quadratic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
+    """All roots of ``a t^2 + b t + c``.
+
+    Args:
+        p: coefficients ``[a, b, c]``, shape (..., 3), finite.
+        t_max: magnitude at which escaping roots are clamped (the paper's 1e150).
+
+    Returns:
+        complex128 array (..., 2): slots ``(t-, t+)`` with ``t+ = (-b + sqrt(b^2 - 4ac)) / 2a``;
+        for a complex pair ``t+`` carries ``+sqrt(4ac - b^2) / 2a``. ``a = 0`` uses the paper's
+        pseudo-sign of ``a``; ``a = b = c = 0`` gives a double root at 0.
+
+    Raises:
+        ValueError: wrong shape or non-finite coefficients (the message names the entries).
+    """
+    arr = _check_coefficients(p, 3)
+    t_max = _check_positive(t_max, "t_max")
+    (roots,) = _launch(_k.solve_quadratic_kernel, arr, wp.vec3d, [t_max], [wp.vec4d])
+    return _to_complex(roots, arr.shape[:-1], 2)
+
+
+def solve_cubic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
+    """All roots of ``q t^3 + a t^2 + b t + c``.
+
+    Args:
+        p: coefficients ``[q, a, b, c]``, shape (..., 4), finite.
+        t_max: magnitude at which escaping roots are clamped.
+
+    Returns:
+        complex128 array (..., 3): slots ``(t-, tM, t+)``. Three real roots ascend; a single real
+        root is ``t+`` when it lies right of the complex pair's real part (reduced ``c^ <= 0``),
+        else ``t-``, and the larger-labelled slot of the pair holds ``+Im``. ``q = 0``: the
+        escaping root is ``-sign(a) t_max``; all zero: triple root 0.
+
+    Raises:
+        ValueError: wrong shape or non-finite coefficients.
+    """
+    arr = _check_coefficients(p, 4)
+    t_max = _check_positive(t_max, "t_max")
+    (roots,) = _launch(_k.solve_cubic_kernel, arr, wp.vec4d, [t_max], [_k.vec6d])
+    return _to_complex(roots, arr.shape[:-1], 3)
+
+
+def _quadratic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float):
+    roots, jac = _launch(
+        _k.quadratic_jacobian_kernel, arr, wp.vec3d, [t_max, max_derivative], [wp.vec4d, _k.mat43d]
+    )
+    lead = arr.shape[:-1]
+    return roots.reshape(lead + (2, 2)), jac.reshape(lead + (2, 2, 3))
+
+
+def _cubic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float):
+    roots, jac = _launch(_k.cubic_jacobian_kernel, arr, wp.vec4d, [t_max, max_derivative], [_k.vec6d, _k.mat64d])
+    lead = arr.shape[:-1]
+    return roots.reshape(lead + (3, 2)), jac.reshape(lead + (3, 2, 4))
+
+
+def quadratic_root_jacobian(
+    p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE
+) -> np.ndarray:
+    """Mollified Jacobian of both quadratic roots (eq. ``ourapproachderivctilde``).
+
+    Args:
+        p: ``[a, b, c]``, shape (..., 3).
+        t_max: root clamp.
+        max_derivative: ``M`` of the robust division.
+
+    Returns:
+        float64 (..., 2, 2, 3): ``[slot (t-, t+), part (Re, Im), coefficient (a, b, c)]``.
+    """
+    arr = _check_coefficients(p, 3)
+    _, jac = _quadratic_jacobian_raw(
+        arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative")
+    )
+    return jac
+
+
+def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE) -> np.ndarray:
+    """Mollified Jacobian of the three cubic roots w.r.t. the caller's coefficients.
+
+    Args:
+        p: ``[q, a, b, c]``, shape (..., 4).
+        t_max: root clamp.
+        max_derivative: ``M`` of the robust division.
+
+    Returns:
+        float64 (..., 3, 2, 4): ``[slot (t-, tM, t+), part (Re, Im), coefficient (q, a, b, c)]``.
+    """
+    arr = _check_coefficients(p, 4)
+    _, jac = _cubic_jacobian_raw(arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"))
+    return jac
+
+
+# ---------------------------------------------------------------------------------------------
+# torch autograd functions
+# ---------------------------------------------------------------------------------------------
+
+
+def _torch_roots(p, n: int, jac_fn, t_max: float, max_derivative: float):
+    import torch
+
+    class _Roots(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, coefficients):
+            arr = _check_coefficients(coefficients.detach().cpu().numpy(), n, name="p")
+            roots, jac = jac_fn(arr, t_max, max_derivative)
+            ctx.save_for_backward(torch.from_numpy(jac).to(coefficients.device))
+            return torch.from_numpy(roots).to(device=coefficients.device, dtype=coefficients.dtype)
+
+        @staticmethod
+        def backward(ctx, grad_roots):
+            (jac,) = ctx.saved_tensors
+            # grad_p[..., k] = sum_{slot, part} grad[..., slot, part] * J[..., slot, part, k]
+            return torch.einsum("...sr,...srk->...k", grad_roots.to(jac.dtype), jac).to(grad_roots.dtype)
+
+    if not isinstance(p, torch.Tensor):
+        raise TypeError(f"p must be a torch.Tensor, got {type(p).__name__}")
+    return _Roots.apply(p)
+
+
+def quadratic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+    """Torch: roots of ``a t^2 + b t + c`` with the mollified implicit derivative as backward.
+
+    Args:
+        p: tensor (..., 3) ``[a, b, c]`` (float64 recommended).
+
+    Returns:
+        tensor (..., 2, 2): ``[slot (t-, t+), (Re, Im)]``.
+    """
+    return _torch_roots(
+        p,
+        3,
+        _quadratic_jacobian_raw,
+        _check_positive(t_max, "t_max"),
+        _check_positive(max_derivative, "max_derivative"),
+    )
+
+
+def cubic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+    """Torch: roots of ``q t^3 + a t^2 + b t + c`` with the mollified implicit derivative as backward.
+
+    Args:
+        p: tensor (..., 4) ``[q, a, b, c]``.
+
+    Returns:
+        tensor (..., 3, 2): ``[slot (t-, tM, t+), (Re, Im)]``.
+    """
+    return _torch_roots(
+        p, 4, _cubic_jacobian_raw, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative")
+    )

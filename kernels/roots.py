@@ -1,0 +1,879 @@
+"""Robust all-roots solvers for quadratics and cubics, with the paper's mollified derivatives.
+
+Everything here is Warp float64 code. The solvers return *every* root, real and complex, for every
+coefficient pattern (leading coefficients zero, all zero, repeated and triple roots, roots beyond
+``t_max``), and the derivative of each root comes from the implicit equations of the paper
+(Johnson & Fedkiw), never from the iterations:
+
+* quadratic: eq. ``ourapproachderivctilde`` with the clamped signs of Remark ``clampingderiv``;
+* cubic: eqs. ``ourapproachderivcubicorigreal`` (real roots), ``handle_by_factoring`` (q = 0),
+  ``ourapproachderivcubicsecondcase`` (3 q tR + a = 0), ``ourapproachderivcubicrealmul`` and
+  ``ourapproachderivcubicimagmul`` (general complex roots), with the signs of Remarks
+  ``cubicclampingderivs`` / ``othercubicclampingderivs``, chained through the coefficient
+  normalisation of eq. ``dpboundeddp``.
+
+Every scalar multiplier is evaluated by *robust division*: the largest entry of its vector is
+factored out (numerator magnitude ``N``), and ``N / D`` is replaced by ``M`` (``max_derivative``)
+whenever ``N >= D * M`` or the denominator has the wrong (clamped) sign.
+
+The solver is exposed to other kernels as :func:`quadratic_roots` and :func:`cubic_roots`
+(``@wp.func``), whose adjoints are registered with ``@wp.func_grad``: any kernel that calls them
+under a ``wp.Tape`` receives the mollified derivatives.
+
+Root slots (design.md, "Root slot conventions"):
+
+* quadratic ``vec4d(t-.re, t-.im, t+.re, t+.im)``; ``t+ = (-b + sqrt(b^2 - 4ac)) / 2a``;
+* cubic ``vec6d(t-.re, t-.im, tM.re, tM.im, t+.re, t+.im)``; three real roots ascending; one real
+  root sits in ``t+`` when it lies right of the complex pair's real part (equivalently the reduced
+  ``c^ <= 0``) and in ``t-`` otherwise; the larger-labelled slot of the pair takes ``+Im``.
+"""
+
+import warp as wp
+
+f64 = wp.float64
+
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+mat43d = wp.types.matrix(shape=(4, 3), dtype=wp.float64)
+"""Quadratic Jacobian: rows (t-.re, t-.im, t+.re, t+.im), columns (a, b, c)."""
+mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
+"""Cubic Jacobian: rows (t-.re, t-.im, tM.re, tM.im, t+.re, t+.im), columns (q, a, b, c)."""
+mat24d = wp.types.matrix(shape=(2, 4), dtype=wp.float64)
+"""d(Re, Im)/d(q, a, b, c) of one cubic root."""
+
+DEFAULT_T_MAX = 1.0e150
+"""Largest root magnitude returned (the paper's value); escaping roots are clamped to it."""
+DEFAULT_MAX_DERIVATIVE = 1000.0
+"""``M`` of the robust division (the paper's value)."""
+
+# Safeguarded Newton-bisection on a bracket inside [-1, 1]: bisection alone needs at most
+# ~11 steps to locate the binary exponent (geometric bisection) plus 53 for the mantissa; the
+# Newton acceptance test below bisects at least every other step, so 256 is a generous cap.
+NEWTON_MAX_ITERATIONS = wp.constant(256)
+# Relative step below which a Newton iterate is accepted: 2 ulp of float64.
+NEWTON_RELATIVE_TOLERANCE = wp.constant(wp.float64(4.440892098500626e-16))
+# sqrt(3), used for the cancellation-free factorisations of 3 x^2 - y^2 (Remark splitupforcancelerror).
+SQRT3 = wp.constant(wp.float64(1.7320508075688772))
+
+
+# --------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def sign_nonneg(x: wp.float64) -> wp.float64:
+    """+1 for x >= 0 (including +0 and -0), -1 otherwise."""
+    if x < wp.float64(0.0):
+        return wp.float64(-1.0)
+    return wp.float64(1.0)
+
+
+@wp.func
+def bounded_quotient(num: wp.float64, den: wp.float64, limit: wp.float64) -> wp.float64:
+    """num / den with magnitude clamped to ``limit`` (the root solver's ``t_max`` division).
+
+    ``den == 0`` gives ``sign(num) * limit`` (``num`` must then be non-zero) without dividing.
+    """
+    an = wp.abs(num)
+    ad = wp.abs(den)
+    if an == wp.float64(0.0):
+        return wp.float64(0.0)
+    s = sign_nonneg(num) * sign_nonneg(den)
+    if ad == wp.float64(0.0):
+        return s * limit
+    if an < ad * limit:
+        return num / den
+    return s * limit
+
+
+@wp.func
+def robust_multiplier(
+    num_mag: wp.float64, den: wp.float64, den_scale: wp.float64, required_sign: wp.float64, limit: wp.float64
+) -> wp.float64:
+    """Robust division of the paper (text after eq. ``ourapproachderivctilde``).
+
+    Returns ``required_sign * min(num_mag / |den * den_scale|, limit)``. The denominator's sign is
+    clamped: if ``den * required_sign <= 0`` it is treated as zero and the result is
+    ``required_sign * limit``. ``den_scale > 0`` is a second factor of the denominator kept apart
+    so that the product never under- or overflows before the comparison with ``limit``.
+
+    Args:
+        num_mag: magnitude factored out of the vector (>= 0, finite).
+        den: signed denominator.
+        den_scale: positive finite factor of the denominator's magnitude.
+        required_sign: +1 or -1, the sign the denominator must have.
+        limit: maximum magnitude ``M``.
+    """
+    d = den * required_sign
+    if d <= wp.float64(0.0):
+        return required_sign * limit
+    # sequential division: an intermediate overflow means the quotient exceeds any sane limit
+    r = num_mag / d
+    r = r / den_scale
+    if r < limit:
+        return required_sign * r
+    return required_sign * limit
+
+
+@wp.func
+def cubic_value(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, x: wp.float64) -> wp.float64:
+    return ((q * x + a) * x + b) * x + c
+
+
+@wp.func
+def bracket_split(lo: wp.float64, hi: wp.float64) -> wp.float64:
+    """A point strictly inside (lo, hi) when one exists, else lo or hi.
+
+    Zero when the bracket straddles it; the geometric mean when the ends differ by more than a
+    factor 16 (so roots of tiny magnitude are reached in ~log2(exponent range) steps); the
+    arithmetic midpoint otherwise.
+    """
+    zero = wp.float64(0.0)
+    if lo < zero and hi > zero:
+        return zero
+    s = wp.float64(1.0)
+    small = wp.abs(lo)
+    big = wp.abs(hi)
+    if hi <= zero:
+        s = wp.float64(-1.0)
+        small = wp.abs(hi)
+        big = wp.abs(lo)
+    if small == zero:
+        if big > wp.float64(1.0e-280):
+            return s * big * wp.float64(2.3283064365386963e-10)  # 2^-32
+        return lo + wp.float64(0.5) * (hi - lo)
+    if big > wp.float64(16.0) * small:
+        return s * wp.sqrt(small) * wp.sqrt(big)
+    return lo + wp.float64(0.5) * (hi - lo)
+
+
+@wp.func
+def newton_bisect(
+    q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, x_neg: wp.float64, x_pos: wp.float64
+) -> wp.float64:
+    """Safeguarded Newton-bisection for a root of q x^3 + a x^2 + b x + c in a sign-change bracket.
+
+    Args:
+        x_neg: bracket end where the cubic is < 0.
+        x_pos: bracket end where the cubic is > 0 (either order).
+
+    Returns:
+        The root to within about 2 ulp (or the better bracket end when the bracket cannot be split).
+    """
+    zero = wp.float64(0.0)
+    lo = wp.min(x_neg, x_pos)
+    hi = wp.max(x_neg, x_pos)
+    x = bracket_split(lo, hi)
+    step_before_last = hi - lo
+    last_step = hi - lo
+    f_neg = wp.float64(-1.0)
+    f_pos = wp.float64(1.0)
+    result = x
+    done = bool(False)
+    for _it in range(NEWTON_MAX_ITERATIONS):
+        if not done:
+            f = cubic_value(q, a, b, c, x)
+            if f == zero:
+                result = x
+                done = True
+            else:
+                if f < zero:
+                    x_neg = x
+                    f_neg = f
+                else:
+                    x_pos = x
+                    f_pos = f
+                lo = wp.min(x_neg, x_pos)
+                hi = wp.max(x_neg, x_pos)
+                df = (wp.float64(3.0) * q * x + wp.float64(2.0) * a) * x + b
+                x_new = x
+                use_newton = bool(False)
+                if df != zero:
+                    x_new = x - f / df
+                    # Newton only if it stays strictly inside and shrinks fast enough (rtsafe rule)
+                    if x_new > lo and x_new < hi:
+                        if wp.abs(x_new - x) < wp.float64(0.5) * wp.abs(step_before_last):
+                            use_newton = True
+                if use_newton:
+                    step = x_new - x
+                    step_before_last = last_step
+                    last_step = step
+                    if wp.abs(step) <= NEWTON_RELATIVE_TOLERANCE * wp.abs(x_new):
+                        result = x_new
+                        done = True
+                    x = x_new
+                else:
+                    x_mid = bracket_split(lo, hi)
+                    if x_mid <= lo or x_mid >= hi:
+                        # adjacent floats: return the end with the smaller residual
+                        if -f_neg < f_pos:
+                            result = x_neg
+                        else:
+                            result = x_pos
+                        done = True
+                    step_before_last = last_step
+                    last_step = x_mid - x
+                    x = x_mid
+    if not done:
+        result = x
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# quadratic solver (subsection "Quadratic Root Solver")
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def power_of_two_scale(m: wp.float64) -> wp.vec2d:
+    """Two powers of two (s1, s2) with m * s1 * s2 in [0.5, 2]: exact rescaling, no overflow."""
+    e = wp.floor(wp.log2(m))
+    e1 = wp.floor(wp.float64(-0.5) * e)
+    e2 = -e - e1
+    return wp.vec2d(wp.pow(wp.float64(2.0), e1), wp.pow(wp.float64(2.0), e2))
+
+
+@wp.func
+def quadratic_solve_scaled(a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float64):
+    """Both roots of a t^2 + b t + c with max(|a|,|b|,|c|) in [0.5, 2] (or all zero).
+
+    Returns:
+        (vec4d(t-.re, t-.im, t+.re, t+.im), pseudo-sign of a (+1/-1)).
+    """
+    zero = wp.float64(0.0)
+    two = wp.float64(2.0)
+    if a == zero and b == zero and c == zero:
+        # everything is a root: a double root at 0 with pseudo-sign a > 0
+        return wp.vec4d(zero, zero, zero, zero), wp.float64(1.0)
+    if a == zero:
+        if b == zero:
+            # roots +-sqrt(-c/a) -> +-t_max; pseudo-sign of a opposite to c so they are real
+            sa = -sign_nonneg(c)
+            return wp.vec4d(-sa * t_max, zero, sa * t_max, zero), sa
+        # linear root -c/b; the other escapes to (-b/a) * inf with pseudo-sign a > 0
+        lin = bounded_quotient(-c, b, t_max)
+        if b < zero:
+            return wp.vec4d(lin, zero, t_max, zero), wp.float64(1.0)
+        return wp.vec4d(-t_max, zero, lin, zero), wp.float64(1.0)
+    sa = sign_nonneg(a)
+    if c == zero:
+        # roots 0 and -b/a exactly (sqrt(b^2) = |b|)
+        other = bounded_quotient(-b, a, t_max)
+        if b <= zero:
+            # t+ = (-b + |b|)/2a = -b/a, t- = 2c/(-b+|b|) = 0 (b<0) or 0 (b=0)
+            return wp.vec4d(zero, zero, other, zero), sa
+        return wp.vec4d(other, zero, zero, zero), sa
+    # discriminant scaled by k^2 with k = max(|b|, 2 sqrt|a| sqrt|c|): no under/overflow
+    k = wp.max(wp.abs(b), two * wp.sqrt(wp.abs(a)) * wp.sqrt(wp.abs(c)))
+    bk = b / k
+    disc = bk * bk - wp.float64(4.0) * (a / k) * (c / k)
+    if disc < zero:
+        re = bounded_quotient(-b, two * a, t_max)
+        im = bounded_quotient(k * wp.sqrt(-disc), two * a, t_max)
+        return wp.vec4d(re, -im, re, im), sa
+    sq = k * wp.sqrt(disc)
+    tp = zero
+    tm = zero
+    if b <= zero:
+        tp = bounded_quotient(-b + sq, two * a, t_max)
+    else:
+        tp = bounded_quotient(two * c, -b - sq, t_max)
+    if b >= zero:
+        tm = bounded_quotient(-b - sq, two * a, t_max)
+    else:
+        tm = bounded_quotient(two * c, -b + sq, t_max)
+    return wp.vec4d(tm, zero, tp, zero), sa
+
+
+@wp.func
+def quadratic_solve(a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float64):
+    """Both roots of a t^2 + b t + c (any finite coefficients) and the pseudo-sign of ``a``.
+
+    The coefficients are rescaled by an exact power of two first (roots are unchanged).
+
+    Returns:
+        (vec4d(t-.re, t-.im, t+.re, t+.im), pseudo-sign of a).
+    """
+    m = wp.max(wp.abs(a), wp.max(wp.abs(b), wp.abs(c)))
+    if m == wp.float64(0.0):
+        return quadratic_solve_scaled(a, b, c, t_max)
+    s = power_of_two_scale(m)
+    return quadratic_solve_scaled(a * s[0] * s[1], b * s[0] * s[1], c * s[0] * s[1], t_max)
+
+
+# --------------------------------------------------------------------------------------------
+# cubic solver (subsection "Cubic Root Solver")
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def real_roots_in_unit_interval(
+    q: wp.float64,
+    a: wp.float64,
+    b: wp.float64,
+    c: wp.float64,
+    f_left: wp.float64,
+    f_right: wp.float64,
+    accept_ends: bool,
+):
+    """Real roots of q x^3 + a x^2 + b x + c (|coefficients| <= 2) inside [-1, 1].
+
+    The interval is split at the critical points of eq. ``critical_points`` into monotone pieces;
+    a piece whose ends have strictly opposite signs holds one root, found by Newton-bisection; a
+    point where the cubic evaluates to exactly zero is a root. ``f_left``/``f_right`` are the
+    values used at x = -1 / +1 (passed in so that the forward and the reversed cubic agree on
+    them bit for bit and no root at |t| = 1 is counted twice or lost).
+
+    Returns:
+        (number of roots found (0..3), vec3d of the roots).
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    # critical points of q x^3 + a x^2 + b x + c, written for a positive leading coefficient
+    qq = q
+    aa = a
+    bb = b
+    if q < zero:
+        qq = -q
+        aa = -a
+        bb = -b
+    n_points = int(0)
+    xs = wp.vec4d(-one, zero, zero, one)
+    fs = wp.vec4d(f_left, zero, zero, f_right)
+    disc = aa * aa - wp.float64(3.0) * qq * bb
+    c_left = -one
+    c_right = -one
+    have_left = False
+    have_right = False
+    if disc > zero:
+        sq = wp.sqrt(disc)
+        # eq. critical_points (de-rationalised to avoid cancellation)
+        if aa >= zero:
+            if qq > zero:
+                c_left = (-aa - sq) / (wp.float64(3.0) * qq)
+                have_left = True
+        else:
+            c_left = bb / (-aa + sq)
+            have_left = True
+        if aa <= zero:
+            if qq > zero:
+                c_right = (-aa + sq) / (wp.float64(3.0) * qq)
+                have_right = True
+        else:
+            c_right = bb / (-aa - sq)
+            have_right = True
+        if have_left and have_right and not (c_left < c_right):
+            # numerical error broke the ordering: drop both (fewer, larger monotone pieces)
+            have_left = False
+            have_right = False
+    n_points = 1
+    if have_left and c_left > -one and c_left < one:
+        xs[n_points] = c_left
+        fs[n_points] = cubic_value(q, a, b, c, c_left)
+        n_points = n_points + 1
+    if have_right and c_right > -one and c_right < one:
+        xs[n_points] = c_right
+        fs[n_points] = cubic_value(q, a, b, c, c_right)
+        n_points = n_points + 1
+    xs[n_points] = one
+    fs[n_points] = f_right
+    n_points = n_points + 1
+
+    roots = wp.vec3d(zero, zero, zero)
+    count = int(0)
+    for i in range(n_points):
+        is_end = i == 0 or i == n_points - 1
+        if fs[i] == zero and (accept_ends or not is_end):
+            if count < 3:
+                roots[count] = xs[i]
+                count = count + 1
+        if i + 1 < n_points:
+            fl = fs[i]
+            fr = fs[i + 1]
+            if (fl < zero and fr > zero) or (fl > zero and fr < zero):
+                x_neg = xs[i]
+                x_pos = xs[i + 1]
+                if fl > zero:
+                    x_neg = xs[i + 1]
+                    x_pos = xs[i]
+                r = newton_bisect(q, a, b, c, x_neg, x_pos)
+                if count < 3:
+                    roots[count] = r
+                    count = count + 1
+    return count, roots
+
+
+@wp.func
+def sort3(x: wp.vec3d) -> wp.vec3d:
+    a = x[0]
+    b = x[1]
+    c = x[2]
+    if a > b:
+        tmp = a
+        a = b
+        b = tmp
+    if b > c:
+        tmp = b
+        b = c
+        c = tmp
+    if a > b:
+        tmp = a
+        a = b
+        b = tmp
+    return wp.vec3d(a, b, c)
+
+
+@wp.func
+def assign_cubic_slots(r1: wp.float64, pair: wp.vec4d) -> vec6d:
+    """Slots from one real root ``r1`` and the two roots ``pair`` (vec4d re, im, re, im)."""
+    zero = wp.float64(0.0)
+    if pair[1] == zero and pair[3] == zero:
+        s = sort3(wp.vec3d(r1, pair[0], pair[2]))
+        return vec6d(s[0], zero, s[1], zero, s[2], zero)
+    t_re = pair[0]
+    t_im = wp.abs(pair[1])
+    if r1 >= t_re:
+        # real root right of the pair (reduced c^ <= 0): it is t+; the pair fills t-, tM
+        return vec6d(t_re, -t_im, t_re, t_im, r1, zero)
+    return vec6d(r1, zero, t_re, -t_im, t_re, t_im)
+
+
+@wp.func
+def cubic_solve_normalized(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float64) -> vec6d:
+    """All roots of q t^3 + a t^2 + b t + c with q >= 0 and max |coefficient| in [0.5, 2]."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if q == zero:
+        # the cubic degenerates: two roots from the quadratic, the third escapes to
+        # -sign(a) * infinity (eq. root_expansion1 with q -> 0+), sign(a) possibly a pseudo-sign
+        quad, sa = quadratic_solve(a, b, c, t_max)
+        return assign_cubic_slots(-sa * t_max, quad)
+
+    # Roots with |t| <= 1 are roots of the cubic in [-1, 1]; roots with |t| > 1 are 1/s for the
+    # roots s in (-1, 1) of the reversed cubic c s^3 + b s^2 + a s + q. Both searches evaluate
+    # polynomials with bounded coefficients on [-1, 1]: nothing overflows for any q > 0.
+    f_left = cubic_value(q, a, b, c, -one)
+    f_right = cubic_value(q, a, b, c, one)
+    n_fwd, fwd = real_roots_in_unit_interval(q, a, b, c, f_left, f_right, True)
+    # reversed cubic: g(s) = s^3 f(1/s); g(-1) = -f(-1), g(1) = f(1)
+    n_rev, rev = real_roots_in_unit_interval(c, b, a, q, -f_left, f_right, False)
+
+    n_total = n_fwd + n_rev
+    if n_total >= 3:
+        t = wp.vec3d(zero, zero, zero)
+        k = int(0)
+        for i in range(n_fwd):
+            if k < 3:
+                t[k] = fwd[i]
+                k = k + 1
+        for i in range(n_rev):
+            if k < 3:
+                t[k] = bounded_quotient(one, rev[i], t_max)
+                k = k + 1
+        ordered = sort3(t)
+        return vec6d(ordered[0], zero, ordered[1], zero, ordered[2], zero)
+
+    # one (or two) real roots found: deflate with the one that leaves the quadratic factor with
+    # the largest (scale-free) discriminant, as the paper recommends, then solve the factor with
+    # the robust quadratic solver (eq. cubic_factored, or eq. doubleflip for a reversed root)
+    best_score = wp.float64(-1.0e300)
+    r1 = wp.float64(0.0)
+    qa = wp.float64(0.0)
+    qb = wp.float64(0.0)
+    qc = wp.float64(0.0)
+    for i in range(n_fwd):
+        r = fwd[i]
+        fa = q
+        fb = q * r + a
+        fc = (q * r + a) * r + b
+        m = wp.max(wp.abs(fa), wp.max(wp.abs(fb), wp.abs(fc)))
+        score = wp.float64(-1.0e299)
+        if m > zero:
+            score = ((fb / m) * (fb / m)) - wp.float64(4.0) * (fa / m) * (fc / m)
+        if score > best_score:
+            best_score = score
+            r1 = r
+            qa = fa
+            qb = fb
+            qc = fc
+    for i in range(n_rev):
+        s = rev[i]
+        fa = (c * s + b) * s + a
+        fb = c * s + b
+        fc = c
+        m = wp.max(wp.abs(fa), wp.max(wp.abs(fb), wp.abs(fc)))
+        score = wp.float64(-1.0e299)
+        if m > zero:
+            score = ((fb / m) * (fb / m)) - wp.float64(4.0) * (fa / m) * (fc / m)
+        if score > best_score:
+            best_score = score
+            r1 = bounded_quotient(one, s, t_max)
+            qa = fa
+            qb = fb
+            qc = fc
+    # (n_total == 0 cannot happen: the sign-change parities of the two searches add up to one)
+    quad, sa = quadratic_solve(qa, qb, qc, t_max)
+    return assign_cubic_slots(r1, quad)
+
+
+@wp.func
+def cubic_solve(p: wp.vec4d, t_max: wp.float64) -> vec6d:
+    """All three roots of p[0] t^3 + p[1] t^2 + p[2] t + p[3] in the slots of the module docstring.
+
+    The coefficients are scaled by an exact power of two so the largest magnitude lies in
+    [0.5, 2] and negated when q < 0 (both leave the roots unchanged); ``q = a = b = c = 0`` gives
+    a triple root at 0.
+    """
+    zero = wp.float64(0.0)
+    m = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.max(wp.abs(p[2]), wp.abs(p[3])))
+    if m == zero:
+        return vec6d(zero, zero, zero, zero, zero, zero)
+    s = power_of_two_scale(m)
+    scale = s[0] * s[1]
+    flip = wp.float64(1.0)
+    if p[0] < zero:
+        flip = wp.float64(-1.0)
+    # two multiplications keep each step exact (s[0], s[1] are powers of two within range)
+    q = (p[0] * s[0]) * s[1] * flip
+    a = (p[1] * s[0]) * s[1] * flip
+    b = (p[2] * s[0]) * s[1] * flip
+    c = (p[3] * s[0]) * s[1] * flip
+    _unused = scale
+    return cubic_solve_normalized(q, a, b, c, t_max)
+
+
+# --------------------------------------------------------------------------------------------
+# mollified derivatives
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def max_abs3(x: wp.float64, y: wp.float64, z: wp.float64) -> wp.float64:
+    return wp.max(wp.abs(x), wp.max(wp.abs(y), wp.abs(z)))
+
+
+@wp.func
+def quadratic_real_row(
+    t: wp.float64, a_s: wp.float64, b_s: wp.float64, scale_back: wp.float64, required_sign: wp.float64, limit: wp.float64
+) -> wp.vec3d:
+    """d t / d(a, b, c) of a real root: -(t^2, t, 1) / (2 a t + b), eq. ``ourapproachderivctilde``.
+
+    The denominator 2 a t + b is evaluated on the power-of-two scaled coefficients (``a_s``,
+    ``b_s``) and multiplied back by ``scale_back`` inside the robust division.
+    """
+    one = wp.float64(1.0)
+    at = wp.abs(t)
+    direction = wp.vec3d(t * t, t, one)
+    n = one
+    if at > one:
+        inv = one / at
+        # (t^2, t, 1) / t^2 without forming t^2 (t may be t_max)
+        direction = wp.vec3d(one, sign_nonneg(t) * inv, inv * inv)
+        n = at * at
+    den = wp.float64(2.0) * a_s * t + b_s
+    scalar = robust_multiplier(n, den, scale_back, required_sign, limit)
+    return -scalar * direction
+
+
+@wp.func
+def quadratic_root_jacobian(p: wp.vec3d, roots: wp.vec4d, limit: wp.float64) -> mat43d:
+    """Mollified Jacobian of both quadratic roots w.r.t. the caller's (raw) coefficients.
+
+    As in the paper's quadratic experiments the raw coefficients enter the formula (no
+    normalisation), so the clamp ``limit`` (``M``) acts on d t / d(a, b, c) directly; the
+    denominators are evaluated on power-of-two scaled coefficients to avoid overflow.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    jac = mat43d()
+    m = max_abs3(p[0], p[1], p[2])
+    a_s = p[0]
+    b_s = p[1]
+    scale_back = one
+    if m > zero:
+        s = power_of_two_scale(m)
+        a_s = p[0] * s[0] * s[1]
+        b_s = p[1] * s[0] * s[1]
+        scale_back = one / (s[0] * s[1])
+    for slot in range(2):
+        t_re = roots[2 * slot]
+        t_im = roots[2 * slot + 1]
+        # Remark clampingderiv: positive for t+, negative for t-
+        required = wp.float64(-1.0)
+        if slot == 1:
+            required = one
+        if t_im == zero:
+            row = quadratic_real_row(t_re, a_s, b_s, scale_back, required, limit)
+            for j in range(3):
+                jac[2 * slot, j] = row[j]
+        else:
+            # top row: -(2 tR, 1, 0) / (2a)  (t_im factored out and cancelled)
+            top = wp.vec3d(two * t_re, one, zero)
+            n_top = wp.max(one, wp.abs(two * t_re))
+            s_top = robust_multiplier(n_top, two * a_s, scale_back, sign_nonneg(a_s), limit)
+            # bottom row: (tR^2 - tI^2, tR, 1) / (2 a tI), with (tR + tI)(tR - tI) (Remark splitupforcancelerror)
+            bottom = wp.vec3d((t_re + t_im) * (t_re - t_im), t_re, one)
+            n_bot = wp.max(one, wp.max(wp.abs(bottom[0]), wp.abs(bottom[1])))
+            s_bot = robust_multiplier(
+                n_bot, two * a_s * wp.sign(t_im), scale_back * wp.abs(t_im), sign_nonneg(a_s) * sign_nonneg(t_im), limit
+            )
+            for j in range(3):
+                jac[2 * slot, j] = -s_top * top[j] / n_top
+                jac[2 * slot + 1, j] = s_bot * bottom[j] / n_bot
+    return jac
+
+
+@wp.func
+def cubic_real_row(
+    t: wp.float64, q: wp.float64, a: wp.float64, b: wp.float64, required_sign: wp.float64, limit: wp.float64
+) -> wp.vec4d:
+    """Eq. ``ourapproachderivcubicorigreal``: -(t^3, t^2, t, 1) / (3 q t^2 + 2 a t + b)."""
+    one = wp.float64(1.0)
+    at = wp.abs(t)
+    direction = wp.vec4d(t * t * t, t * t, t, one)
+    n = one
+    den_scale = one
+    if at > one:
+        inv = one / at
+        sg = sign_nonneg(t)
+        # (t^3, t^2, t, 1) / |t|^3 without forming t^3
+        direction = wp.vec4d(sg, inv, sg * inv * inv, inv * inv * inv)
+        # N / D = |t|^3 / D computed as (|t|^2 / D) * |t| = (|t|^2 / D) / (1/|t|)
+        n = at * at
+        den_scale = inv
+    den = (wp.float64(3.0) * q * t + wp.float64(2.0) * a) * t + b
+    scalar = robust_multiplier(n, den, den_scale, required_sign, limit)
+    return -scalar * direction
+
+
+@wp.func
+def largest_abs4(v: wp.vec4d) -> wp.float64:
+    return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.max(wp.abs(v[2]), wp.abs(v[3])))
+
+
+@wp.func
+def cubic_complex_jacobian_rows(
+    t_re: wp.float64, t_im: wp.float64, q: wp.float64, a: wp.float64, limit: wp.float64
+) -> mat24d:
+    """d(Re t, Im t)/d(q, a, b, c) for a complex root of a normalised cubic (q >= 0).
+
+    Uses eq. ``handle_by_factoring`` when q = 0, eq. ``ourapproachderivcubicsecondcase`` when
+    3 q tR + a = 0, and eqs. ``ourapproachderivcubicrealmul`` / ``ourapproachderivcubicimagmul``
+    otherwise; every scalar multiplier by robust division with the largest entry factored out.
+    The root parts are pre-divided by m = max(1, |tR|, |tI|) so no entry overflows even for
+    roots at t_max.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    three = wp.float64(3.0)
+    rows = mat24d()
+    u = three * q * t_re + a
+    # entries of degree up to 3 in (tR, tI) are divided by powers of m = max(1, |tR|, |tI|)
+    # (numerator and denominator alike) so nothing overflows for roots near t_max
+    m = wp.max(one, wp.max(wp.abs(t_re), wp.abs(t_im)))
+    x = t_re / m
+    y = t_im / m
+    if q == zero:
+        # eq. handle_by_factoring; a != 0 here (the quadratic factor has complex roots)
+        top = wp.vec4d((SQRT3 * t_re + t_im) * (SQRT3 * t_re - t_im), two * t_re, one, zero)
+        n_top = wp.max(one, wp.max(wp.abs(top[0]), wp.abs(top[1])))
+        s_top = robust_multiplier(n_top, two * a, one, sign_nonneg(a), limit)
+        # (tR (tR^2 - 3 tI^2), tR^2 - tI^2, tR, 1) / (2 a tI), all divided by m
+        bot = wp.vec4d(m * m * x * (x + SQRT3 * y) * (x - SQRT3 * y), m * (x + y) * (x - y), x, one / m)
+        n_bot = wp.max(one / m, largest_abs4(bot))
+        s_bot = robust_multiplier(n_bot, two * a * wp.sign(y), wp.abs(y), sign_nonneg(a) * sign_nonneg(t_im), limit)
+        for j in range(4):
+            rows[0, j] = -s_top * top[j] / n_top
+            rows[1, j] = s_bot * bot[j] / n_bot
+        return rows
+    if u == zero:
+        # eq. ourapproachderivcubicsecondcase; top: (tR^3 - 3 tR tI^2, tR^2 - tI^2, tR, 1) / (2 q tI^2)
+        # divided by m^2 on both sides
+        top = wp.vec4d(m * x * (x + SQRT3 * y) * (x - SQRT3 * y), (x + y) * (x - y), x / m, one / (m * m))
+        n_top = wp.max(one / (m * m), largest_abs4(top))
+        s_top = robust_multiplier(n_top, two * q * wp.abs(y), wp.abs(y), one, limit)
+        # bottom: (3 tR^2 - tI^2, 2 tR, 1, 0) / (2 q tI), divided by m
+        bot = wp.vec4d(m * (SQRT3 * x + y) * (SQRT3 * x - y), two * x, one / m, zero)
+        n_bot = wp.max(one / m, largest_abs4(bot))
+        s_bot = robust_multiplier(n_bot, two * q * wp.sign(y), wp.abs(y), sign_nonneg(t_im), limit)
+        for j in range(4):
+            rows[0, j] = s_top * top[j] / n_top
+            rows[1, j] = s_bot * bot[j] / n_bot
+        return rows
+    # general case; alpha = q tR and w = q tI are bounded (Remark imag_bound)
+    w = q * t_im
+    alpha = q * t_re
+    mu = wp.max(wp.abs(u), wp.abs(w))
+    # (u^2 + w^2) = mu^2 * h2 with h2 in [1, 2]
+    h2 = (u / mu) * (u / mu) + (w / mu) * (w / mu)
+    # eq. ourapproachderivcubicrealmul: -1/2 * v_R / (u^2 + w^2)
+    v_r = wp.vec4d(
+        (wp.float64(8.0) * alpha + three * a) * t_re * t_re - a * t_im * t_im,
+        wp.float64(5.0) * alpha * t_re + w * t_im + two * a * t_re,
+        two * alpha + a,
+        -q,
+    )
+    n_r = largest_abs4(v_r)
+    s_r = wp.float64(0.0)
+    if n_r > zero:
+        # N / (2 mu^2 h2) as ((N / (2 h2 mu)) / mu)
+        s_r = robust_multiplier(n_r, two * h2 * mu, mu, one, limit)
+    # eq. ourapproachderivcubicimagmul: v_I / (2 tI (u^2 + w^2)), every entry divided by m
+    v_i = wp.vec4d(
+        m * m * (x * x * x * u - (w * y + (wp.float64(6.0) * alpha + three * a) * x) * y * y),
+        m * (u * x * x - (alpha + a) * y * y),
+        three * alpha * x + w * y + a * x,
+        u / m,
+    )
+    n_i = largest_abs4(v_i)
+    s_i = wp.float64(0.0)
+    if n_i > zero:
+        s_i = robust_multiplier(n_i, two * y * h2 * mu, mu, sign_nonneg(t_im), limit)
+    for j in range(4):
+        if n_r > zero:
+            rows[0, j] = -s_r * v_r[j] / n_r
+        if n_i > zero:
+            rows[1, j] = s_i * v_i[j] / n_i
+    return rows
+
+
+@wp.func
+def cubic_root_jacobian(p: wp.vec4d, roots: vec6d, limit: wp.float64) -> mat64d:
+    """Mollified Jacobian of the three cubic roots w.r.t. the caller's coefficients.
+
+    The formulas are evaluated on the paper's bounded coefficients p = sigma * p_raw / S with
+    S = max(1, max |p_raw|) and sigma = sign(q) (so q >= 0, pseudo-sign q > 0 when q = 0), and
+    chained back through eq. ``dpboundeddp``: J_raw = J(p) * dp/dp_raw.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    sigma = one
+    if p[0] < zero:
+        sigma = wp.float64(-1.0)
+    k = int(0)
+    big = wp.abs(p[0])
+    for i in range(1, 4):
+        if wp.abs(p[i]) > big:
+            big = wp.abs(p[i])
+            k = i
+    scale = wp.max(one, big)
+    pn = wp.vec4d(p[0] * sigma / scale, p[1] * sigma / scale, p[2] * sigma / scale, p[3] * sigma / scale)
+    q = pn[0]
+    a = pn[1]
+    b = pn[2]
+    jn = mat64d()
+    for slot in range(3):
+        t_re = roots[2 * slot]
+        t_im = roots[2 * slot + 1]
+        if t_im == zero:
+            # Remark cubicclampingderivs (q >= 0): positive for t-, t+; negative for tM
+            required = one
+            if slot == 1:
+                required = wp.float64(-1.0)
+            row = cubic_real_row(t_re, q, a, b, required, limit)
+            for j in range(4):
+                jn[2 * slot, j] = row[j]
+        else:
+            rows = cubic_complex_jacobian_rows(t_re, t_im, q, a, limit)
+            for j in range(4):
+                jn[2 * slot, j] = rows[0, j]
+                jn[2 * slot + 1, j] = rows[1, j]
+    if big <= one:
+        return jn * sigma
+    # eq. dpboundeddp: dp_i/dp_raw_j = (sigma / S) (delta_ij - (p_raw_i / S) sign(p_raw_k) delta_jk)
+    sk = sign_nonneg(p[k])
+    jac = mat64d()
+    for r in range(6):
+        proj = wp.float64(0.0)
+        for i in range(4):
+            proj = proj + jn[r, i] * (p[i] / scale)
+        for j in range(4):
+            val = jn[r, j]
+            if j == k:
+                val = val - proj * sk
+            jac[r, j] = val * sigma / scale
+    return jac
+
+
+# --------------------------------------------------------------------------------------------
+# differentiable entry points for kernels (adjoint = mollified implicit derivative)
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def quadratic_roots(p: wp.vec3d, t_max: wp.float64, max_derivative: wp.float64) -> wp.vec4d:
+    """Roots (t-.re, t-.im, t+.re, t+.im) of p[0] t^2 + p[1] t + p[2]; differentiable under a tape."""
+    roots, _sa = quadratic_solve(p[0], p[1], p[2], t_max)
+    return roots
+
+
+@wp.func_grad(quadratic_roots)
+def adj_quadratic_roots(p: wp.vec3d, t_max: wp.float64, max_derivative: wp.float64, adj_ret: wp.vec4d):
+    roots, _sa = quadratic_solve(p[0], p[1], p[2], t_max)
+    jac = quadratic_root_jacobian(p, roots, max_derivative)
+    wp.adjoint[p] += wp.transpose(jac) @ adj_ret
+
+
+@wp.func
+def cubic_roots(p: wp.vec4d, t_max: wp.float64, max_derivative: wp.float64) -> vec6d:
+    """Roots (t-, tM, t+ as re, im pairs) of the cubic p; differentiable under a tape."""
+    return cubic_solve(p, t_max)
+
+
+@wp.func_grad(cubic_roots)
+def adj_cubic_roots(p: wp.vec4d, t_max: wp.float64, max_derivative: wp.float64, adj_ret: vec6d):
+    roots = cubic_solve(p, t_max)
+    jac = cubic_root_jacobian(p, roots, max_derivative)
+    wp.adjoint[p] += wp.transpose(jac) @ adj_ret
+
+
+# --------------------------------------------------------------------------------------------
+# batched kernels behind collision.roots
+# --------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def solve_quadratic_kernel(
+    coefficients: wp.array(dtype=wp.vec3d), t_max: wp.float64, roots: wp.array(dtype=wp.vec4d)
+):
+    i = wp.tid()
+    r, _sa = quadratic_solve(coefficients[i][0], coefficients[i][1], coefficients[i][2], t_max)
+    roots[i] = r
+
+
+@wp.kernel
+def quadratic_jacobian_kernel(
+    coefficients: wp.array(dtype=wp.vec3d),
+    t_max: wp.float64,
+    max_derivative: wp.float64,
+    roots: wp.array(dtype=wp.vec4d),
+    jacobians: wp.array(dtype=mat43d),
+):
+    i = wp.tid()
+    p = coefficients[i]
+    r, _sa = quadratic_solve(p[0], p[1], p[2], t_max)
+    roots[i] = r
+    jacobians[i] = quadratic_root_jacobian(p, r, max_derivative)
+
+
+@wp.kernel
+def solve_cubic_kernel(coefficients: wp.array(dtype=wp.vec4d), t_max: wp.float64, roots: wp.array(dtype=vec6d)):
+    i = wp.tid()
+    roots[i] = cubic_solve(coefficients[i], t_max)
+
+
+@wp.kernel
+def cubic_jacobian_kernel(
+    coefficients: wp.array(dtype=wp.vec4d),
+    t_max: wp.float64,
+    max_derivative: wp.float64,
+    roots: wp.array(dtype=vec6d),
+    jacobians: wp.array(dtype=mat64d),
+):
+    i = wp.tid()
+    p = coefficients[i]
+    r = cubic_solve(p, t_max)
+    roots[i] = r
+    jacobians[i] = cubic_root_jacobian(p, r, max_derivative)

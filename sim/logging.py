@@ -1,0 +1,229 @@
+"""Small reusable rerun helper shared by every scene.
+
+Conventions (see ``docs/design.md``, section "rerun conventions"):
+
+* one :class:`rerun.RecordingStream` per run, ``save(path)`` is called *before* anything is logged;
+* deterministic output: ``log_time`` and ``log_tick`` are disabled and the recording id is derived
+  from the application id, the recording name and the seed (``uuid5``), so two runs with the same
+  arguments log the same data on the same timelines;
+* timelines: ``frame`` (sequence) and, where meaningful, ``sim_time`` (duration, seconds);
+  optimisation scenes add their own sequence timeline (e.g. ``iteration``);
+* a default blueprint made of time-series views (see :func:`time_series_blueprint`);
+* atomic files: the stream writes to a hidden temporary file next to the requested path, which is
+  renamed onto the target only when the ``with`` block exits without an exception. On error the
+  temporary file is removed, so no half-written ``.rrd`` is ever left behind.
+
+Example:
+    >>> with RerunLogger("out.rrd", recording_name="demo") as log:  # doctest: +SKIP
+    ...     log.send_blueprint(time_series_blueprint({"loss": ["/metrics/loss"]}))
+    ...     log.log_scalars("/metrics/loss", np.array([1.0, 0.5]), sequence={"frame": [0, 1]})
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from types import TracebackType
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+__all__ = ["RerunLogger", "time_series_blueprint", "grid_of_time_series"]
+
+
+class RerunLogger:
+    """Owns one rerun recording written atomically to ``path``.
+
+    Use it as a context manager. Inside the block, data goes to ``<dir>/.<name>.<pid>.tmp``; on a
+    clean exit the temporary file is renamed to ``path``; on an exception it is deleted and the
+    exception propagates.
+
+    Args:
+        path: Destination ``.rrd`` file. Its parent folder must exist.
+        application_id: Rerun application id.
+        recording_name: Human-readable recording name (also part of the deterministic recording id).
+        seed: Seed of the run (part of the deterministic recording id).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        application_id: str = "tunnelsim",
+        recording_name: str = "tunnelsim",
+        seed: int = 0,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(f"output folder does not exist: {self.path.parent}")
+        self.tmp_path = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        self.application_id = application_id
+        self.recording_name = recording_name
+        self.seed = int(seed)
+        self.rec: rr.RecordingStream | None = None
+
+    # ------------------------------------------------------------------ context management
+    def __enter__(self) -> RerunLogger:
+        recording_id = uuid.uuid5(
+            uuid.NAMESPACE_URL, f"tunnelsim/{self.application_id}/{self.recording_name}/{self.seed}"
+        )
+        rec = rr.RecordingStream(
+            self.application_id, recording_id=recording_id, send_properties=False
+        )
+        rec.save(str(self.tmp_path))  # the sink must be set before anything is logged
+        rec.set_log_time_enabled(False)
+        rec.set_log_tick_enabled(False)
+        rec.send_recording_name(self.recording_name)
+        self.rec = rec
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        rec, self.rec = self.rec, None
+        try:
+            if rec is not None:
+                rec.flush()
+                rec.disconnect()
+        finally:
+            if exc_type is None and self.tmp_path.exists():
+                os.replace(self.tmp_path, self.path)
+            else:
+                self.tmp_path.unlink(missing_ok=True)
+
+    # ------------------------------------------------------------------ logging
+    @property
+    def stream(self) -> rr.RecordingStream:
+        """The underlying recording stream (only valid inside the ``with`` block)."""
+        if self.rec is None:
+            raise RuntimeError("RerunLogger is not open; use it as a context manager")
+        return self.rec
+
+    def send_blueprint(self, blueprint: rrb.Blueprint) -> None:
+        """Sends the default blueprint (layout) of the recording.
+
+        Args:
+            blueprint: The blueprint, e.g. from :func:`time_series_blueprint`.
+        """
+        self.stream.send_blueprint(blueprint, make_active=True, make_default=True)
+
+    def log_scalars(
+        self,
+        entity: str,
+        values: np.ndarray | Sequence[float],
+        *,
+        sequence: Mapping[str, np.ndarray | Sequence[int]] | None = None,
+        sim_time: np.ndarray | Sequence[float] | None = None,
+    ) -> None:
+        """Logs a whole time series of ``rr.Scalars`` in one columnar call.
+
+        Args:
+            entity: Entity path, e.g. ``/metrics/loss``.
+            values: Shape ``(T,)`` for one series or ``(T, K)`` for ``K`` series on one entity.
+                Non-finite values are logged as they are (the viewer shows gaps).
+            sequence: Sequence timelines, name -> ``T`` integers. Defaults to
+                ``{"frame": arange(T)}``.
+            sim_time: Optional ``T`` simulated times in seconds (timeline ``sim_time``).
+        """
+        vals = np.asarray(values, dtype=np.float64)
+        if vals.ndim not in (1, 2):
+            raise ValueError(f"values must be 1-D or 2-D, got shape {vals.shape}")
+        n = vals.shape[0]
+        if sequence is None:
+            sequence = {"frame": np.arange(n)}
+        indexes = []
+        for name, seq in sequence.items():
+            seq = np.asarray(seq, dtype=np.int64)
+            if seq.shape != (n,):
+                raise ValueError(f"timeline {name!r} has shape {seq.shape}, expected ({n},)")
+            indexes.append(rr.TimeColumn(name, sequence=seq))
+        if sim_time is not None:
+            st = np.asarray(sim_time, dtype=np.float64)
+            if st.shape != (n,):
+                raise ValueError(f"sim_time has shape {st.shape}, expected ({n},)")
+            indexes.append(rr.TimeColumn("sim_time", duration=st))
+        self.stream.send_columns(entity, indexes=indexes, columns=rr.Scalars.columns(scalars=vals))
+
+    def log_scalar(
+        self, entity: str, value: float, *, frame: int, sim_time: float | None = None
+    ) -> None:
+        """Logs one scalar sample at ``frame`` (and ``sim_time`` if given), row-wise.
+
+        Args:
+            entity: Entity path.
+            value: The scalar.
+            frame: Value on the ``frame`` sequence timeline.
+            sim_time: Optional simulated time in seconds.
+        """
+        rec = self.stream
+        rec.set_time("frame", sequence=int(frame))
+        if sim_time is not None:
+            rec.set_time("sim_time", duration=float(sim_time))
+        rec.log(entity, rr.Scalars(float(value)))
+
+    def series_names(self, entity: str, names: Sequence[str]) -> None:
+        """Names the series of a multi-valued scalar entity (static ``rr.SeriesLines``).
+
+        Args:
+            entity: Entity path.
+            names: One name per series.
+        """
+        self.stream.log(entity, rr.SeriesLines(names=list(names)), static=True)
+
+    def log_text(self, entity: str, text: str, *, media_type: str = "text/plain") -> None:
+        """Logs a static text document (e.g. a run summary).
+
+        Args:
+            entity: Entity path.
+            text: Document body.
+            media_type: ``text/plain`` or ``text/markdown``.
+        """
+        self.stream.log(entity, rr.TextDocument(text, media_type=media_type), static=True)
+
+
+def grid_of_time_series(name: str, views: Mapping[str, Sequence[str]]) -> rrb.Grid:
+    """A grid container with one time-series view per entry.
+
+    Args:
+        name: Container name (tab title).
+        views: View name -> entity paths (or entity path expressions) shown in it.
+
+    Returns:
+        The grid container.
+    """
+    return rrb.Grid(
+        *[
+            rrb.TimeSeriesView(
+                name=view_name, origin="/", contents=[f"+ {p}" for p in paths]
+            )
+            for view_name, paths in views.items()
+        ],
+        name=name,
+    )
+
+
+def time_series_blueprint(
+    views: Mapping[str, Sequence[str]] | Mapping[str, Mapping[str, Sequence[str]]],
+) -> rrb.Blueprint:
+    """Default blueprint made of time-series views.
+
+    Args:
+        views: Either view name -> entity paths (one grid), or tab name -> (view name -> entity
+            paths) for one grid per tab.
+
+    Returns:
+        The blueprint.
+    """
+    values = list(views.values())
+    if values and isinstance(values[0], Mapping):
+        tabs = [grid_of_time_series(tab, v) for tab, v in views.items()]  # type: ignore[arg-type]
+        layout: rrb.Container = rrb.Tabs(*tabs)
+    else:
+        layout = grid_of_time_series("time series", views)  # type: ignore[arg-type]
+    return rrb.Blueprint(layout, collapse_panels=True)
