@@ -191,9 +191,13 @@ def newton_bisect(
                 if df != zero:
                     x_new = x - f / df
                     # Newton only if it stays strictly inside and shrinks fast enough (rtsafe rule)
+                    # ... and, far from the root (a Newton step larger than a quarter of |x|,
+                    # as when x^2 dominates and Newton merely halves x), the geometric split
+                    # of bracket_split gets there in far fewer steps
                     if x_new > lo and x_new < hi:
                         if wp.abs(x_new - x) < wp.float64(0.5) * wp.abs(step_before_last):
-                            use_newton = True
+                            if wp.abs(x_new - x) <= wp.float64(0.25) * wp.max(wp.abs(x), wp.abs(x_new)):
+                                use_newton = True
                 if use_newton:
                     step = x_new - x
                     step_before_last = last_step
@@ -404,6 +408,35 @@ def real_roots_in_unit_interval(
 
 
 @wp.func
+def deflate(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, r: wp.float64) -> wp.vec3d:
+    """Quadratic factor (A, B, C) of q t^3 + a t^2 + b t + c = (t - r)(A t^2 + B t + C), |r| <= 1.
+
+    Eq. ``cubic_factored`` is forward deflation (B = q r + a, C = B r + b); it cancels
+    catastrophically when r is larger than the other roots. Backward deflation from the constant
+    term (C = -c / r, B = (C - b) / r) is stable then. C is taken from the constant term (one
+    rounding) and B from whichever form cancels less, measured by |terms| / |result|.
+    """
+    zero = wp.float64(0.0)
+    b_fwd = q * r + a
+    c_fwd = b_fwd * r + b
+    if r == zero:
+        return wp.vec3d(q, b_fwd, c_fwd)
+    c_bwd = -c / r
+    b_bwd = (c_bwd - b) / r
+    # cancellation ratios: forward |q r| + |a| against |B|; backward |C| + |b| against |C - b|
+    fwd_terms = wp.abs(q * r) + wp.abs(a)
+    bwd_terms = wp.abs(c_bwd) + wp.abs(b)
+    # compare fwd_terms / |b_fwd| with bwd_terms / |c_bwd - b| without dividing
+    use_bwd = fwd_terms * wp.abs(c_bwd - b) > bwd_terms * wp.abs(b_fwd)
+    c_out = c_bwd
+    if wp.abs(c_bwd) == wp.float64(0.0) and c != zero:
+        c_out = c_fwd  # c / r underflowed
+    if use_bwd:
+        return wp.vec3d(q, b_bwd, c_out)
+    return wp.vec3d(q, b_fwd, c_out)
+
+
+@wp.func
 def sort3(x: wp.vec3d) -> wp.vec3d:
     a = x[0]
     b = x[1]
@@ -483,9 +516,10 @@ def cubic_solve_normalized(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.fl
     qc = wp.float64(0.0)
     for i in range(n_fwd):
         r = fwd[i]
-        fa = q
-        fb = q * r + a
-        fc = (q * r + a) * r + b
+        factor = deflate(q, a, b, c, r)
+        fa = factor[0]
+        fb = factor[1]
+        fc = factor[2]
         m = wp.max(wp.abs(fa), wp.max(wp.abs(fb), wp.abs(fc)))
         score = wp.float64(-1.0e299)
         if m > zero:
@@ -498,9 +532,11 @@ def cubic_solve_normalized(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.fl
             qc = fc
     for i in range(n_rev):
         s = rev[i]
-        fa = (c * s + b) * s + a
-        fb = c * s + b
-        fc = c
+        # eq. doubleflip: the reversed cubic's quadratic factor, read back in t
+        factor = deflate(c, b, a, q, s)
+        fa = factor[2]
+        fb = factor[1]
+        fc = factor[0]
         m = wp.max(wp.abs(fa), wp.max(wp.abs(fb), wp.abs(fc)))
         score = wp.float64(-1.0e299)
         if m > zero:
