@@ -149,77 +149,80 @@ def bracket_split(lo: wp.float64, hi: wp.float64) -> wp.float64:
 
 @wp.func
 def newton_bisect(
-    q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, x_neg: wp.float64, x_pos: wp.float64
+    q: wp.float64,
+    a: wp.float64,
+    b: wp.float64,
+    c: wp.float64,
+    x_neg: wp.float64,
+    f_neg: wp.float64,
+    x_pos: wp.float64,
+    f_pos: wp.float64,
 ) -> wp.float64:
     """Safeguarded Newton-bisection for a root of q x^3 + a x^2 + b x + c in a sign-change bracket.
 
+    Starts at the secant (regula falsi) point of the bracket; a Newton step is taken only when it
+    stays strictly inside the bracket and is at most 0.4 of the previous step (so a Newton
+    sequence that merely halves x far from the root is replaced by the geometric split of
+    :func:`bracket_split`); otherwise the bracket is split. Stops on an exact zero, a Newton step
+    below 2 ulp, or a bracket of adjacent floats.
+
     Args:
-        x_neg: bracket end where the cubic is < 0.
-        x_pos: bracket end where the cubic is > 0 (either order).
+        x_neg, f_neg: bracket end with cubic value < 0.
+        x_pos, f_pos: bracket end with cubic value > 0 (either order).
 
     Returns:
-        The root to within about 2 ulp (or the better bracket end when the bracket cannot be split).
+        The root to within about 2 ulp.
     """
     zero = wp.float64(0.0)
     lo = wp.min(x_neg, x_pos)
     hi = wp.max(x_neg, x_pos)
-    x = bracket_split(lo, hi)
-    step_before_last = hi - lo
+    x = x_neg - f_neg * ((x_pos - x_neg) / (f_pos - f_neg))
+    if not (x > lo and x < hi):
+        x = bracket_split(lo, hi)
     last_step = hi - lo
-    f_neg = wp.float64(-1.0)
-    f_pos = wp.float64(1.0)
     result = x
-    done = bool(False)
-    for _it in range(NEWTON_MAX_ITERATIONS):
-        if not done:
-            f = cubic_value(q, a, b, c, x)
-            if f == zero:
-                result = x
-                done = True
-            else:
-                if f < zero:
-                    x_neg = x
-                    f_neg = f
+    it = int(0)
+    while it < NEWTON_MAX_ITERATIONS:
+        it = it + 1
+        f = cubic_value(q, a, b, c, x)
+        if f == zero:
+            result = x
+            break
+        if f < zero:
+            x_neg = x
+            f_neg = f
+        else:
+            x_pos = x
+            f_pos = f
+        lo = wp.min(x_neg, x_pos)
+        hi = wp.max(x_neg, x_pos)
+        df = (wp.float64(3.0) * q * x + wp.float64(2.0) * a) * x + b
+        x_new = x
+        use_newton = bool(False)
+        if df != zero:
+            x_new = x - f / df
+            if x_new > lo and x_new < hi:
+                if wp.abs(x_new - x) <= wp.float64(0.4) * wp.abs(last_step):
+                    use_newton = True
+        if use_newton:
+            step = x_new - x
+            last_step = step
+            x = x_new
+            result = x
+            if wp.abs(step) <= NEWTON_RELATIVE_TOLERANCE * wp.abs(x_new):
+                break
+        else:
+            x_mid = bracket_split(lo, hi)
+            if x_mid <= lo or x_mid >= hi:
+                # adjacent floats: the end with the smaller residual
+                if -f_neg < f_pos:
+                    result = x_neg
                 else:
-                    x_pos = x
-                    f_pos = f
-                lo = wp.min(x_neg, x_pos)
-                hi = wp.max(x_neg, x_pos)
-                df = (wp.float64(3.0) * q * x + wp.float64(2.0) * a) * x + b
-                x_new = x
-                use_newton = bool(False)
-                if df != zero:
-                    x_new = x - f / df
-                    # Newton only if it stays strictly inside and shrinks fast enough (rtsafe rule)
-                    # ... and, far from the root (a Newton step larger than a quarter of |x|,
-                    # as when x^2 dominates and Newton merely halves x), the geometric split
-                    # of bracket_split gets there in far fewer steps
-                    if x_new > lo and x_new < hi:
-                        if wp.abs(x_new - x) < wp.float64(0.5) * wp.abs(step_before_last):
-                            if wp.abs(x_new - x) <= wp.float64(0.25) * wp.max(wp.abs(x), wp.abs(x_new)):
-                                use_newton = True
-                if use_newton:
-                    step = x_new - x
-                    step_before_last = last_step
-                    last_step = step
-                    if wp.abs(step) <= NEWTON_RELATIVE_TOLERANCE * wp.abs(x_new):
-                        result = x_new
-                        done = True
-                    x = x_new
-                else:
-                    x_mid = bracket_split(lo, hi)
-                    if x_mid <= lo or x_mid >= hi:
-                        # adjacent floats: return the end with the smaller residual
-                        if -f_neg < f_pos:
-                            result = x_neg
-                        else:
-                            result = x_pos
-                        done = True
-                    step_before_last = last_step
-                    last_step = x_mid - x
-                    x = x_mid
-    if not done:
-        result = x
+                    result = x_pos
+                break
+            last_step = x_mid - x
+            x = x_mid
+            result = x
     return result
 
 
@@ -395,12 +398,11 @@ def real_roots_in_unit_interval(
             fl = fs[i]
             fr = fs[i + 1]
             if (fl < zero and fr > zero) or (fl > zero and fr < zero):
-                x_neg = xs[i]
-                x_pos = xs[i + 1]
-                if fl > zero:
-                    x_neg = xs[i + 1]
-                    x_pos = xs[i]
-                r = newton_bisect(q, a, b, c, x_neg, x_pos)
+                r = wp.float64(0.0)
+                if fl < zero:
+                    r = newton_bisect(q, a, b, c, xs[i], fl, xs[i + 1], fr)
+                else:
+                    r = newton_bisect(q, a, b, c, xs[i + 1], fr, xs[i], fl)
                 if count < 3:
                     roots[count] = r
                     count = count + 1
@@ -488,8 +490,13 @@ def cubic_solve_normalized(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.fl
     f_left = cubic_value(q, a, b, c, -one)
     f_right = cubic_value(q, a, b, c, one)
     n_fwd, fwd = real_roots_in_unit_interval(q, a, b, c, f_left, f_right, True)
-    # reversed cubic: g(s) = s^3 f(1/s); g(-1) = -f(-1), g(1) = f(1)
-    n_rev, rev = real_roots_in_unit_interval(c, b, a, q, -f_left, f_right, False)
+    n_rev = int(0)
+    rev = wp.vec3d(zero, zero, zero)
+    if n_fwd == 0:
+        # no root in [-1, 1]: search the reversed cubic g(s) = s^3 f(1/s), g(-1) = -f(-1),
+        # g(1) = f(1). (When a root in [-1, 1] exists, deflating by it is as accurate and
+        # cheaper: deflate() picks the stable direction whatever the other roots' sizes.)
+        n_rev, rev = real_roots_in_unit_interval(c, b, a, q, -f_left, f_right, False)
 
     n_total = n_fwd + n_rev
     if n_total >= 3:

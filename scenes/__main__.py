@@ -1,0 +1,146 @@
+"""Scene CLI.
+
+Usage::
+
+    python -m scenes --list
+    python -m scenes NAME --out PATH.rrd [--seed S] [--precision float64|float32]
+                          [scene options: --steps N for simulations; --iters N --lr LR
+                           --max-derivative M for the optimisation scenes]
+    python -m scenes NAME --help
+
+The run writes a rerun recording to ``PATH.rrd`` (atomically: nothing is left behind on error),
+shows a tqdm progress bar on stderr when stderr is a terminal, and ends by printing exactly one
+line of JSON (the scene's summary plus ``wall_time_s`` and ``out``) to stdout. Everything else a
+run prints (Warp's start-up banner, kernel compilation notes) is diverted to stderr, so stdout is
+machine-readable.
+
+Exit codes: 0 success; 2 usage error (unknown scene, bad option values, missing output folder);
+1 the scene failed (traceback on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import sys
+import time
+import traceback
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from scenes.registry import describe, jsonable, load_scene, positive_int, scene_names
+
+PROG = "python -m scenes"
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Run a tunnelsim scene headless and write a rerun .rrd recording.",
+        epilog=f"scenes: {', '.join(scene_names())}. Use '{PROG} NAME --help' for a scene's options.",
+    )
+    parser.add_argument("--list", action="store_true", help="list the scenes and exit")
+    return parser
+
+
+def _scene_parser(name: str, module) -> argparse.ArgumentParser:
+    """Common options (design.md "Scene CLI") plus the scene's own."""
+    parser = argparse.ArgumentParser(prog=f"{PROG} {name}", description=getattr(module, "DESCRIPTION", None))
+    parser.add_argument("--out", required=True, type=Path, help="output rerun recording (.rrd)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    precisions = tuple(getattr(module, "PRECISIONS", ("float64", "float32")))
+    parser.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                        help=f"floating-point precision (default float64; this scene: {', '.join(precisions)})")
+    supports_steps = getattr(module, "SUPPORTS_STEPS", False)
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help="simulation steps (>= 1)" if supports_steps else argparse.SUPPRESS)
+    module.add_arguments(parser)
+    return parser
+
+
+def _check_scene_options(parser: argparse.ArgumentParser, name: str, module, args: argparse.Namespace) -> None:
+    """Rejects options the scene cannot honour, with a clear message (exit code 2)."""
+    precisions = tuple(getattr(module, "PRECISIONS", ("float64", "float32")))
+    if args.precision not in precisions:
+        parser.error(f"--precision {args.precision}: scene {name!r} supports only {', '.join(precisions)}")
+    if args.steps is not None and not getattr(module, "SUPPORTS_STEPS", False):
+        hint = " (an optimisation scene: use --iters)" if hasattr(args, "iters") else ""
+        parser.error(f"--steps does not apply to scene {name!r}{hint}")
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr() -> Iterator[None]:
+    """Diverts file descriptor 1 (and ``sys.stdout``) to stderr for the duration of the block."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """CLI entry point.
+
+    Args:
+        argv: Arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns:
+        Process exit code.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = _top_parser()
+    if not argv or argv[0].startswith("-"):
+        args, rest = top.parse_known_args(argv)
+        if args.list and not rest:
+            for name in scene_names():
+                try:
+                    desc = describe(name)
+                except Exception as exc:  # a broken scene must not hide the others
+                    desc = f"(failed to import: {exc})"
+                print(f"{name}\t{desc}")
+            return 0
+        top.error(f"give a scene name first, or --list. Available scenes: {', '.join(scene_names())}")
+
+    name, rest = argv[0], argv[1:]
+    if name not in scene_names():
+        top.error(f"unknown scene {name!r}. Available scenes: {', '.join(scene_names())}")
+    module = load_scene(name)
+    parser = _scene_parser(name, module)
+    args = parser.parse_args(rest)
+    _check_scene_options(parser, name, module, args)
+    out: Path = args.out
+    if not out.parent.is_dir():
+        parser.error(f"--out: folder {str(out.parent)!r} does not exist")
+    if out.is_dir():
+        parser.error(f"--out: {str(out)!r} is a folder")
+
+    from sim.logging import RerunLogger
+
+    start = time.perf_counter()
+    try:
+        with _stdout_to_stderr():
+            with RerunLogger(out, recording_name=name, seed=args.seed) as log:
+                summary = module.run(args, log)
+                summary = {**summary, "wall_time_s": round(time.perf_counter() - start, 3), "out": str(out)}
+                text = json.dumps(jsonable(summary), allow_nan=False)
+                log.log_text("/summary", text)
+    except KeyboardInterrupt:
+        print("interrupted; no recording written", file=sys.stderr)
+        return 130
+    except Exception:
+        traceback.print_exc()
+        print(f"{PROG} {name}: failed; no recording written to {out}", file=sys.stderr)
+        return 1
+    print(text, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

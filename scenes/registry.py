@@ -1,0 +1,130 @@
+"""Registry of the scenes runnable with ``python -m scenes NAME``.
+
+A scene is a module that defines:
+
+* ``NAME: str`` and ``DESCRIPTION: str`` (one line, shown by ``--list``);
+* ``add_arguments(parser)``: adds its own options to an ``argparse`` parser that already has the
+  common ``--out``, ``--seed`` and ``--precision`` (and ``--steps`` if ``SUPPORTS_STEPS``);
+* optionally ``PRECISIONS`` (default both ``float64`` and ``float32``; the CLI rejects others)
+  and ``SUPPORTS_STEPS`` (default ``False``);
+* ``run(args, log) -> dict``: runs, logs to ``log`` (an open :class:`sim.logging.RerunLogger`) and
+  returns the JSON-serialisable summary that the CLI prints as its last line.
+
+Modules are imported lazily, so ``--list`` stays fast and a scene that fails to import does not
+break the others. Add a scene by adding one line to :data:`SCENES`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import math
+from collections.abc import Mapping
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+SCENES: dict[str, str] = {
+    "paper_quadratic": "scenes.paper_quadratic",
+    "paper_cubic": "scenes.paper_cubic",
+}
+"""Scene name -> module path."""
+
+
+def scene_names() -> list[str]:
+    """Sorted names of the registered scenes."""
+    return sorted(SCENES)
+
+
+def load_scene(name: str) -> ModuleType:
+    """Imports a registered scene module.
+
+    Args:
+        name: Scene name.
+
+    Returns:
+        The module.
+
+    Raises:
+        KeyError: ``name`` is not registered (the message lists the scenes).
+    """
+    if name not in SCENES:
+        raise KeyError(f"unknown scene {name!r}; available scenes: {', '.join(scene_names())}")
+    return importlib.import_module(SCENES[name])
+
+
+def describe(name: str) -> str:
+    """One-line description of a scene (imports it)."""
+    return getattr(load_scene(name), "DESCRIPTION", "")
+
+
+def positive_int(text: str) -> int:
+    """``argparse`` type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer (>= 1), got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """``argparse`` type: a finite float > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (value > 0.0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
+
+
+def add_optimisation_arguments(
+    parser: argparse.ArgumentParser,
+    *,
+    default_iters: int,
+    default_lr: float,
+    default_max_derivative: float,
+) -> None:
+    """Options shared by the optimisation scenes: ``--iters``, ``--lr``, ``--max-derivative``.
+
+    Args:
+        parser: Parser to extend.
+        default_iters: Default number of optimiser steps.
+        default_lr: Default learning rate.
+        default_max_derivative: Default ``M`` of the robust division.
+    """
+    parser.add_argument("--iters", type=positive_int, default=default_iters,
+                        help=f"optimiser steps (>= 1; default {default_iters})")
+    parser.add_argument("--lr", type=positive_float, default=default_lr,
+                        help=f"Adam learning rate (default {default_lr:g})")
+    parser.add_argument("--max-derivative", type=positive_float, default=default_max_derivative,
+                        dest="max_derivative",
+                        help=f"M of the robust division (default {default_max_derivative:g})")
+
+
+def jsonable(value: Any) -> Any:
+    """Recursively converts numpy scalars/arrays and non-finite floats (-> ``None``) for strict JSON.
+
+    Args:
+        value: Any nest of mappings, sequences, numpy arrays and numbers.
+
+    Returns:
+        The converted value.
+    """
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    return value
