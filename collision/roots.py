@@ -39,7 +39,8 @@ _initialised = False
 def _init() -> None:
     global _initialised
     if not _initialised:
-        wp.config.quiet = True
+        # keep Warp's banner off stdout: scene CLIs print exactly one JSON line there
+        wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.config.log_level
         wp.init()
         _initialised = True
 
@@ -71,20 +72,26 @@ def _check_positive(value: float, name: str) -> float:
 
 
 def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list):
+    """Launch ``kernel`` over the rows of ``coefficients``; outputs come back as numpy arrays.
+
+    On the CPU the numpy buffers are shared with Warp (no copies in or out).
+    """
     _init()
-    flat = coefficients.reshape(-1, coefficients.shape[-1])
+    flat = np.ascontiguousarray(coefficients.reshape(-1, coefficients.shape[-1]))
     count = flat.shape[0]
-    outs = [wp.empty(count, dtype=dtype, device=_DEVICE) for dtype in outputs]
+    results = [np.empty((count,) + tuple(dtype._shape_), dtype=np.float64) for dtype in outputs]
     if count == 0:
-        return [np.zeros((0,) + tuple(o.dtype._shape_), dtype=np.float64) for o in outs]
-    coef = wp.array(flat, dtype=coef_type, device=_DEVICE)
+        return results
+    coef = wp.array(flat, dtype=coef_type, device=_DEVICE, copy=False)
+    outs = [wp.array(r, dtype=dtype, device=_DEVICE, copy=False) for r, dtype in zip(results, outputs)]
     wp.launch(kernel, dim=count, inputs=[coef, *[wp.float64(s) for s in scalars]], outputs=outs, device=_DEVICE)
-    return [o.numpy() for o in outs]
+    wp.synchronize_device(_DEVICE)
+    return results
 
 
 def _to_complex(flat_roots: np.ndarray, lead_shape: tuple, slots: int) -> np.ndarray:
-    pairs = flat_roots.reshape(lead_shape + (slots, 2))
-    return pairs[..., 0] + 1j * pairs[..., 1]
+    # (re, im) pairs are laid out like complex128: a view, not a copy
+    return flat_roots.reshape(-1, 2 * slots).view(np.complex128).reshape(lead_shape + (slots,))
 
 
 def solve_quadratic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:

@@ -51,6 +51,9 @@ DEFAULT_MAX_DERIVATIVE = 1000.0
 NEWTON_MAX_ITERATIONS = wp.constant(256)
 # Relative step below which a Newton iterate is accepted: 2 ulp of float64.
 NEWTON_RELATIVE_TOLERANCE = wp.constant(wp.float64(4.440892098500626e-16))
+# Largest max-|coefficient| solved without rescaling (2^100): cubic values on [-1, 1] stay far
+# from overflow, and for maxima >= 0.5 rescaling could only push small terms towards underflow.
+NO_RESCALE_MAX = wp.constant(wp.float64(1.2676506002282294e30))
 # sqrt(3), used for the cancellation-free factorisations of 3 x^2 - y^2 (Remark splitupforcancelerror).
 SQRT3 = wp.constant(wp.float64(1.7320508075688772))
 
@@ -270,8 +273,14 @@ def quadratic_solve_scaled(a: wp.float64, b: wp.float64, c: wp.float64, t_max: w
             # t+ = (-b + |b|)/2a = -b/a, t- = 2c/(-b+|b|) = 0 (b<0) or 0 (b=0)
             return wp.vec4d(zero, zero, other, zero), sa
         return wp.vec4d(other, zero, zero, zero), sa
-    # discriminant scaled by k^2 with k = max(|b|, 2 sqrt|a| sqrt|c|): no under/overflow
-    k = wp.max(wp.abs(b), two * wp.sqrt(wp.abs(a)) * wp.sqrt(wp.abs(c)))
+    # discriminant scaled by k^2, k a power of two near max(|b|, 2 sqrt|a| sqrt|c|): no
+    # under/overflow, and b/k, a/k, c/k stay exact so an exactly representable discriminant
+    # (a dyadic double root) stays exact
+    k_raw = wp.max(wp.abs(b), two * wp.sqrt(wp.abs(a)) * wp.sqrt(wp.abs(c)))
+    k = wp.float64(1.0)
+    if k_raw < wp.float64(6.223015277861142e-61) or k_raw > wp.float64(1.6069380442589903e60):
+        # outside [2^-200, 2^200] the squares could under/overflow: rescale
+        k = wp.pow(two, wp.floor(wp.log2(k_raw)))
     bk = b / k
     disc = bk * bk - wp.float64(4.0) * (a / k) * (c / k)
     if disc < zero:
@@ -302,7 +311,8 @@ def quadratic_solve(a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float
         (vec4d(t-.re, t-.im, t+.re, t+.im), pseudo-sign of a).
     """
     m = wp.max(wp.abs(a), wp.max(wp.abs(b), wp.abs(c)))
-    if m == wp.float64(0.0):
+    if m == wp.float64(0.0) or (m >= wp.float64(0.5) and m <= NO_RESCALE_MAX):
+        # within this range rescaling changes no rounding (only exponents): skip it
         return quadratic_solve_scaled(a, b, c, t_max)
     s = power_of_two_scale(m)
     return quadratic_solve_scaled(a * s[0] * s[1], b * s[0] * s[1], c * s[0] * s[1], t_max)
@@ -475,7 +485,7 @@ def assign_cubic_slots(r1: wp.float64, pair: wp.vec4d) -> vec6d:
 
 @wp.func
 def cubic_solve_normalized(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float64) -> vec6d:
-    """All roots of q t^3 + a t^2 + b t + c with q >= 0 and max |coefficient| in [0.5, 2]."""
+    """All roots of q t^3 + a t^2 + b t + c with q >= 0 and max |coefficient| in [0.5, 2^100]."""
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     if q == zero:
@@ -571,17 +581,18 @@ def cubic_solve(p: wp.vec4d, t_max: wp.float64) -> vec6d:
     m = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.max(wp.abs(p[2]), wp.abs(p[3])))
     if m == zero:
         return vec6d(zero, zero, zero, zero, zero, zero)
-    s = power_of_two_scale(m)
-    scale = s[0] * s[1]
     flip = wp.float64(1.0)
     if p[0] < zero:
         flip = wp.float64(-1.0)
+    if m >= wp.float64(0.5) and m <= NO_RESCALE_MAX:
+        # a power-of-two rescaling would change exponents only, not one rounding: skip it
+        return cubic_solve_normalized(p[0] * flip, p[1] * flip, p[2] * flip, p[3] * flip, t_max)
+    s = power_of_two_scale(m)
     # two multiplications keep each step exact (s[0], s[1] are powers of two within range)
     q = (p[0] * s[0]) * s[1] * flip
     a = (p[1] * s[0]) * s[1] * flip
     b = (p[2] * s[0]) * s[1] * flip
     c = (p[3] * s[0]) * s[1] * flip
-    _unused = scale
     return cubic_solve_normalized(q, a, b, c, t_max)
 
 
@@ -662,8 +673,8 @@ def quadratic_root_jacobian(p: wp.vec3d, roots: wp.vec4d, limit: wp.float64) -> 
                 n_bot, two * a_s * wp.sign(t_im), scale_back * wp.abs(t_im), sign_nonneg(a_s) * sign_nonneg(t_im), limit
             )
             for j in range(3):
-                jac[2 * slot, j] = -s_top * top[j] / n_top
-                jac[2 * slot + 1, j] = s_bot * bottom[j] / n_bot
+                jac[2 * slot, j] = -s_top * (top[j] / n_top)
+                jac[2 * slot + 1, j] = s_bot * (bottom[j] / n_bot)
     return jac
 
 
@@ -728,8 +739,8 @@ def cubic_complex_jacobian_rows(
         n_bot = wp.max(one / m, largest_abs4(bot))
         s_bot = robust_multiplier(n_bot, two * a * wp.sign(y), wp.abs(y), sign_nonneg(a) * sign_nonneg(t_im), limit)
         for j in range(4):
-            rows[0, j] = -s_top * top[j] / n_top
-            rows[1, j] = s_bot * bot[j] / n_bot
+            rows[0, j] = -s_top * (top[j] / n_top)
+            rows[1, j] = s_bot * (bot[j] / n_bot)
         return rows
     if u == zero:
         # eq. ourapproachderivcubicsecondcase; top: (tR^3 - 3 tR tI^2, tR^2 - tI^2, tR, 1) / (2 q tI^2)
@@ -742,8 +753,8 @@ def cubic_complex_jacobian_rows(
         n_bot = wp.max(one / m, largest_abs4(bot))
         s_bot = robust_multiplier(n_bot, two * q * wp.sign(y), wp.abs(y), sign_nonneg(t_im), limit)
         for j in range(4):
-            rows[0, j] = s_top * top[j] / n_top
-            rows[1, j] = s_bot * bot[j] / n_bot
+            rows[0, j] = s_top * (top[j] / n_top)
+            rows[1, j] = s_bot * (bot[j] / n_bot)
         return rows
     # general case; alpha = q tR and w = q tI are bounded (Remark imag_bound)
     w = q * t_im
@@ -776,9 +787,9 @@ def cubic_complex_jacobian_rows(
         s_i = robust_multiplier(n_i, two * y * h2 * mu, mu, sign_nonneg(t_im), limit)
     for j in range(4):
         if n_r > zero:
-            rows[0, j] = -s_r * v_r[j] / n_r
+            rows[0, j] = -s_r * (v_r[j] / n_r)
         if n_i > zero:
-            rows[1, j] = s_i * v_i[j] / n_i
+            rows[1, j] = s_i * (v_i[j] / n_i)
     return rows
 
 
@@ -802,6 +813,9 @@ def cubic_root_jacobian(p: wp.vec4d, roots: vec6d, limit: wp.float64) -> mat64d:
             big = wp.abs(p[i])
             k = i
     scale = wp.max(one, big)
+    # M bounds the derivative w.r.t. the caller's coefficients: the chain of eq. dpboundeddp
+    # divides by S, so the clamp in the normalised space is M * S (capped so it stays finite).
+    limit = wp.min(limit * scale, wp.float64(1.0e300))
     pn = wp.vec4d(p[0] * sigma / scale, p[1] * sigma / scale, p[2] * sigma / scale, p[3] * sigma / scale)
     q = pn[0]
     a = pn[1]
