@@ -151,7 +151,7 @@ def bracket_split(lo: wp.float64, hi: wp.float64) -> wp.float64:
 
 
 @wp.func
-def newton_bisect(
+def newton_bisect_core(
     q: wp.float64,
     a: wp.float64,
     b: wp.float64,
@@ -160,7 +160,8 @@ def newton_bisect(
     f_neg: wp.float64,
     x_pos: wp.float64,
     f_pos: wp.float64,
-) -> wp.float64:
+    rescale_below: wp.float64,
+) -> wp.vec4d:
     """Safeguarded Newton-bisection for a root of q x^3 + a x^2 + b x + c in a sign-change bracket.
 
     Starts at the secant (regula falsi) point of the bracket; a Newton step is taken only when it
@@ -173,10 +174,13 @@ def newton_bisect(
         x_neg, f_neg: bracket end with cubic value < 0.
         x_pos, f_pos: bracket end with cubic value > 0 (either order).
 
+        rescale_below: stop early, flagged, once the whole bracket is below this magnitude.
+
     Returns:
-        The root to within about 2 ulp.
+        vec4d(root (to about 2 ulp), 1 if stopped for rescaling else 0, x_neg, x_pos).
     """
     zero = wp.float64(0.0)
+    rescale = wp.float64(0.0)
     lo = wp.min(x_neg, x_pos)
     hi = wp.max(x_neg, x_pos)
     x = x_neg - f_neg * ((x_pos - x_neg) / (f_pos - f_neg))
@@ -187,6 +191,9 @@ def newton_bisect(
     it = int(0)
     while it < NEWTON_MAX_ITERATIONS:
         it = it + 1
+        if wp.max(wp.abs(x_neg), wp.abs(x_pos)) < rescale_below:
+            rescale = wp.float64(1.0)
+            break
         f = cubic_value(q, a, b, c, x)
         if f == zero:
             result = x
@@ -226,7 +233,170 @@ def newton_bisect(
             last_step = x_mid - x
             x = x_mid
             result = x
-    return result
+    return wp.vec4d(result, rescale, x_neg, x_pos)
+
+
+# --------------------------------------------------------------------------------------------
+# balancing for coefficients spread over more than ~2^960 (root-scale change t = 2^L u)
+# --------------------------------------------------------------------------------------------
+
+# Nonzero coefficients closer than this factor to the largest one survive a rescaling to ~1
+# without entering the subnormal range (2^-960 leaves 62 binary orders of headroom).
+BALANCE_SPREAD = wp.constant(wp.float64(1.0261652496336e-289))
+
+
+@wp.func
+def times_pow2(x: wp.float64, e: wp.float64) -> wp.float64:
+    """x * 2^e for integer-valued e (|e| <= 3000) in three exact steps (no intermediate overflow
+    when the result is representable: each step moves a third of the way)."""
+    e1 = wp.floor(e / wp.float64(3.0))
+    e2 = wp.floor((e - e1) / wp.float64(2.0))
+    e3 = e - e1 - e2
+    two = wp.float64(2.0)
+    return ((x * wp.pow(two, e1)) * wp.pow(two, e2)) * wp.pow(two, e3)
+
+
+@wp.func
+def needs_balancing(p: wp.vec4d, m: wp.float64) -> bool:
+    """True when some nonzero coefficient is below 2^-960 times the largest magnitude ``m``."""
+    limit = m * BALANCE_SPREAD
+    small = bool(False)
+    for i in range(4):
+        v = wp.abs(p[i])
+        if v != wp.float64(0.0) and v < limit:
+            small = True
+    return small
+
+
+@wp.func
+def exponent_spread(p: wp.vec4d, e: wp.vec4d, root_exp: wp.float64) -> wp.vec2d:
+    """(max, min) over nonzero p[k] of e[k] + (3 - k) * root_exp."""
+    hi = wp.float64(-1.0e30)
+    lo = wp.float64(1.0e30)
+    for k in range(4):
+        if p[k] != wp.float64(0.0):
+            v = e[k] + wp.float64(3 - k) * root_exp
+            hi = wp.max(hi, v)
+            lo = wp.min(lo, v)
+    return wp.vec2d(hi, lo)
+
+
+@wp.func
+def balance(p: wp.vec4d):
+    """Root-scale exponent L and coefficients of the cubic in u = t / 2^L, rescaled to max ~1.
+
+    Substituting t = 2^L u multiplies coefficient k (degree 3 - k) by 2^((3-k) L); L is chosen
+    among the breakpoints of the Newton polygon (exponent differences of coefficient pairs over
+    their degree gap) to minimise the spread of the resulting binary exponents, then everything
+    is divided by a power of two so the largest magnitude is in [1, 2). All scalings are exact.
+
+    Returns:
+        (L, scaled coefficients vec4d).
+    """
+    e = wp.vec4d()
+    for k in range(4):
+        if p[k] != wp.float64(0.0):
+            e[k] = wp.floor(wp.log2(wp.abs(p[k])))
+    best_l = wp.float64(0.0)
+    spread0 = exponent_spread(p, e, best_l)
+    best_spread = spread0[0] - spread0[1]
+    for i in range(4):
+        for j in range(i + 1, 4):
+            if p[i] != wp.float64(0.0) and p[j] != wp.float64(0.0):
+                cand = wp.round((e[j] - e[i]) / wp.float64(j - i))
+                sp = exponent_spread(p, e, cand)
+                if sp[0] - sp[1] < best_spread:
+                    best_spread = sp[0] - sp[1]
+                    best_l = cand
+    top = exponent_spread(p, e, best_l)[0]
+    scaled = wp.vec4d()
+    for k in range(4):
+        scaled[k] = times_pow2(p[k], wp.float64(3 - k) * best_l - top)
+    return best_l, scaled
+
+
+@wp.func
+def unbalance_root(x: wp.float64, root_exp: wp.float64, u_max: wp.float64, t_max: wp.float64) -> wp.float64:
+    """t = 2^L u for one root part, with escaping (|u| >= u_max) and large parts clamped to t_max."""
+    if x == wp.float64(0.0):
+        return x
+    if wp.abs(x) >= u_max:
+        return sign_nonneg(x) * t_max
+    if wp.log2(wp.abs(x)) + root_exp >= wp.log2(t_max):
+        return sign_nonneg(x) * t_max
+    return times_pow2(x, root_exp)
+
+
+@wp.func
+def scaled_root_limit(root_exp: wp.float64, t_max: wp.float64) -> wp.float64:
+    """t_max expressed in u = t / 2^L, kept within [2^-1000, 2^1000]."""
+    e = wp.log2(t_max) - root_exp
+    if e > wp.float64(1000.0):
+        return wp.pow(wp.float64(2.0), wp.float64(1000.0))
+    if e < wp.float64(-1000.0):
+        return wp.pow(wp.float64(2.0), wp.float64(-1000.0))
+    return times_pow2(t_max, -root_exp)
+
+
+# Below this magnitude the terms of a cubic with O(1) coefficients can underflow (x^3 ~ 2^-300):
+# brackets and critical points this small are searched in the variable u = x / 2^L.
+SMALL_ARGUMENT = wp.constant(wp.float64(7.888609052210118e-31))  # 2^-100
+
+
+@wp.func
+def coefficients_at_scale(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, root_exp: wp.float64) -> wp.vec4d:
+    """Coefficients of 2^K f(2^L u) with K making the largest one ~1 (all scalings exact)."""
+    p = wp.vec4d(q, a, b, c)
+    e = wp.vec4d()
+    for k in range(4):
+        if p[k] != wp.float64(0.0):
+            e[k] = wp.floor(wp.log2(wp.abs(p[k])))
+    top = exponent_spread(p, e, root_exp)[0]
+    out = wp.vec4d()
+    for k in range(4):
+        out[k] = times_pow2(p[k], wp.float64(3 - k) * root_exp - top)
+    return out
+
+
+@wp.func
+def cubic_sign_value(q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, x: wp.float64) -> wp.float64:
+    """A positive multiple of f(x): exact f(x) for |x| >= 2^-100, else evaluated at the scale of x
+    so that tiny terms do not underflow to a spurious zero (only the sign and zero-ness are used)."""
+    if x == wp.float64(0.0) or wp.abs(x) >= SMALL_ARGUMENT:
+        return cubic_value(q, a, b, c, x)
+    root_exp = wp.floor(wp.log2(wp.abs(x)))
+    sc = coefficients_at_scale(q, a, b, c, root_exp)
+    return cubic_value(sc[0], sc[1], sc[2], sc[3], times_pow2(x, -root_exp))
+
+
+@wp.func
+def newton_bisect(
+    q: wp.float64, a: wp.float64, b: wp.float64, c: wp.float64, x_neg: wp.float64, f_neg: wp.float64, x_pos: wp.float64, f_pos: wp.float64
+) -> wp.float64:
+    """:func:`newton_bisect_core`; once the bracket is below 2^-100 the search continues in
+    u = x / 2^L with rescaled coefficients, so tiny terms never underflow into a false zero."""
+    res = newton_bisect_core(q, a, b, c, x_neg, f_neg, x_pos, f_pos, SMALL_ARGUMENT)
+    if res[1] == wp.float64(0.0):
+        return res[0]
+    x_neg = res[2]
+    x_pos = res[3]
+    big = wp.max(wp.abs(x_neg), wp.abs(x_pos))
+    root_exp = wp.floor(wp.log2(big))
+    sc = coefficients_at_scale(q, a, b, c, root_exp)
+    u_neg = times_pow2(x_neg, -root_exp)
+    u_pos = times_pow2(x_pos, -root_exp)
+    g_neg = cubic_value(sc[0], sc[1], sc[2], sc[3], u_neg)
+    g_pos = cubic_value(sc[0], sc[1], sc[2], sc[3], u_pos)
+    if g_neg == wp.float64(0.0):
+        return x_neg
+    if g_pos == wp.float64(0.0):
+        return x_pos
+    if g_neg > wp.float64(0.0) or g_pos < wp.float64(0.0):
+        # unscaled signs were spoiled by underflow: keep the bracket, search with rescaled values
+        # only if they still bracket; otherwise finish unscaled
+        return newton_bisect_core(q, a, b, c, x_neg, f_neg, x_pos, f_pos, wp.float64(0.0))[0]
+    u = newton_bisect_core(sc[0], sc[1], sc[2], sc[3], u_neg, g_neg, u_pos, g_pos, wp.float64(0.0))[0]
+    return times_pow2(u, root_exp)
 
 
 # --------------------------------------------------------------------------------------------
@@ -311,6 +481,15 @@ def quadratic_solve(a: wp.float64, b: wp.float64, c: wp.float64, t_max: wp.float
         (vec4d(t-.re, t-.im, t+.re, t+.im), pseudo-sign of a).
     """
     m = wp.max(wp.abs(a), wp.max(wp.abs(b), wp.abs(c)))
+    if m != wp.float64(0.0) and needs_balancing(wp.vec4d(wp.float64(0.0), a, b, c), m):
+        # coefficients spread beyond 2^960: solve for u = t / 2^L instead
+        root_exp, sc = balance(wp.vec4d(wp.float64(0.0), a, b, c))
+        u_max = scaled_root_limit(root_exp, t_max)
+        ur, sa_u = quadratic_solve_scaled(sc[1], sc[2], sc[3], u_max)
+        tr = wp.vec4d()
+        for i in range(4):
+            tr[i] = unbalance_root(ur[i], root_exp, u_max, t_max)
+        return tr, sa_u
     if m == wp.float64(0.0) or (m >= wp.float64(0.5) and m <= NO_RESCALE_MAX):
         # within this range rescaling changes no rounding (only exponents): skip it
         return quadratic_solve_scaled(a, b, c, t_max)
@@ -386,11 +565,11 @@ def real_roots_in_unit_interval(
     n_points = 1
     if have_left and c_left > -one and c_left < one:
         xs[n_points] = c_left
-        fs[n_points] = cubic_value(q, a, b, c, c_left)
+        fs[n_points] = cubic_sign_value(q, a, b, c, c_left)
         n_points = n_points + 1
     if have_right and c_right > -one and c_right < one:
         xs[n_points] = c_right
-        fs[n_points] = cubic_value(q, a, b, c, c_right)
+        fs[n_points] = cubic_sign_value(q, a, b, c, c_right)
         n_points = n_points + 1
     xs[n_points] = one
     fs[n_points] = f_right
@@ -574,8 +753,9 @@ def cubic_solve(p: wp.vec4d, t_max: wp.float64) -> vec6d:
     """All three roots of p[0] t^3 + p[1] t^2 + p[2] t + p[3] in the slots of the module docstring.
 
     The coefficients are scaled by an exact power of two so the largest magnitude lies in
-    [0.5, 2] and negated when q < 0 (both leave the roots unchanged); ``q = a = b = c = 0`` gives
-    a triple root at 0.
+    [0.5, 2^100] and negated when q < 0 (both leave the roots unchanged); coefficients spread over
+    more than 2^960 are first balanced by a root scaling t = 2^L u (see :func:`balance`);
+    ``q = a = b = c = 0`` gives a triple root at 0.
     """
     zero = wp.float64(0.0)
     m = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.max(wp.abs(p[2]), wp.abs(p[3])))
@@ -584,6 +764,15 @@ def cubic_solve(p: wp.vec4d, t_max: wp.float64) -> vec6d:
     flip = wp.float64(1.0)
     if p[0] < zero:
         flip = wp.float64(-1.0)
+    if needs_balancing(p, m):
+        # coefficients spread beyond 2^960: solve for u = t / 2^L instead
+        root_exp, sc = balance(p)
+        u_max = scaled_root_limit(root_exp, t_max)
+        ur = cubic_solve_normalized(sc[0] * flip, sc[1] * flip, sc[2] * flip, sc[3] * flip, u_max)
+        tr = vec6d()
+        for i in range(6):
+            tr[i] = unbalance_root(ur[i], root_exp, u_max, t_max)
+        return tr
     if m >= wp.float64(0.5) and m <= NO_RESCALE_MAX:
         # a power-of-two rescaling would change exponents only, not one rounding: skip it
         return cubic_solve_normalized(p[0] * flip, p[1] * flip, p[2] * flip, p[3] * flip, t_max)
