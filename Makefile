@@ -7,11 +7,10 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum |
 # Each pytest worker gets its own Warp kernel cache (see tests/conftest.py).
 PYTEST_ARGS ?= -n 2
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench fuzz install clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
-	$(PIP) install --upgrade pip
 
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PIP) install -c constraints.txt torch==2.13.0
@@ -21,8 +20,8 @@ $(STAMP): $(PY) pyproject.toml constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m scenes paper_cubic --out demo_paper_cubic.rrd --iters 300
-	$(PY) -m scenes paper_quadratic --out demo_paper_quadratic.rrd --iters 300
+	$(PY) -m scenes paper_cubic --out paper_cubic.rrd
+	$(PY) -m scenes paper_quadratic --out paper_quadratic.rrd
 
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
@@ -30,5 +29,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/roots.py
 
+fuzz: $(STAMP)
+	$(PY) benchmarks/fuzz_roots.py
+
 clean:
-	rm -rf $(VENV) *.rrd .pytest_cache
+	rm -rf $(VENV) *.rrd .pytest_cache .warp_cache
