@@ -10,8 +10,12 @@ on the ``t+`` branch, with the robust solver and the mollified implicit derivati
 ``t_max = 1e150``). Side by side we run the paper's *baseline*: plain torch autograd through a
 real-valued formula or Newton iteration, no complex roots, no mollification.
 
-This module holds the one Adam loop (:func:`run_adam`), used by both scenes and by
-``tests/test_paper_tables.py``, the loss, convergence bookkeeping and the rerun logging of a run.
+This module holds the one Adam loop (:func:`run_adam`, batched over a scene's starts by
+:func:`run_starts`), used by both scenes and by ``tests/test_paper_tables.py``, the loss, the
+robust-solver call of the proposed losses (:class:`RobustRoots`), convergence bookkeeping, the
+rerun logging of a run and the scene driver itself (:func:`run_scene`: progress bar, logging of
+every start and the JSON summary). A scene module keeps only what is its own: its starts, its
+proposed and baseline losses, its branch tracking and names.
 
 All optimisation problems of one scene are batched in one ``(B, P)`` parameter tensor. Adam is
 element-wise (its moments are per entry), so this is exactly equivalent to ``B`` independent
@@ -20,7 +24,10 @@ optimisers; rows never mix (every objective below is row-wise, a NaN in one row 
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import math
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -40,6 +47,10 @@ DEFAULT_MAX_DERIVATIVE = 1000.0
 """``M`` of the robust division: the paper's value for the tables and the cubic examples."""
 T_MAX = 1e150
 """Root clamp ``t_max`` (the paper's value)."""
+PRECISIONS = ("float64",)
+"""Scene attribute: the paper's examples (t_max = 1e150, gradients up to 1e153) need float64."""
+SUPPORTS_STEPS = False
+"""Scene attribute: an optimisation scene takes ``--iters``, not ``--steps``."""
 
 
 @dataclass(frozen=True)
@@ -173,6 +184,40 @@ def run_adam(
     return AdamRun(params, grads, losses, extras)
 
 
+def run_starts(
+    starts: Sequence[Start],
+    objective: Objective,
+    iters: int,
+    lr: float = DEFAULT_LR,
+    progress: Callable[[int], Any] | None = None,
+    *,
+    ignore_fp_errors: bool = False,
+) -> AdamRun:
+    """:func:`run_adam` on a scene's starts: one batch row per start, its fixed coefficients held.
+
+    Args:
+        starts: Starting points (row ``i`` of the history is ``starts[i]``).
+        objective: Row-wise loss, see :data:`Objective`.
+        iters: Adam steps.
+        lr: Learning rate.
+        progress: Optional per-iterate callback.
+        ignore_fp_errors: Silence numpy floating-point warnings during the run (the baselines,
+            whose inf/NaN are expected).
+
+    Returns:
+        The recorded history.
+    """
+    with np.errstate(all="ignore") if ignore_fp_errors else contextlib.nullcontext():
+        return run_adam(
+            [s.p0 for s in starts],
+            objective,
+            iters,
+            lr=lr,
+            trainable=[s.trainable for s in starts],
+            progress=progress,
+        )
+
+
 def solve_finite_rows(solver: Callable[..., torch.Tensor], p: torch.Tensor, **kwargs: Any) -> torch.Tensor:
     """Calls a torch root solver on the rows of ``p`` that are finite; other rows get NaN roots.
 
@@ -196,6 +241,38 @@ def solve_finite_rows(solver: Callable[..., torch.Tensor], p: torch.Tensor, **kw
     out = solver(torch.where(finite[:, None], p, torch.zeros_like(p)), **kwargs)
     mask = finite.reshape(-1, *([1] * (out.ndim - 1)))
     return torch.where(mask, out, torch.full_like(out, float("nan")))
+
+
+class RobustRoots:
+    """Base of the proposed losses: the robust torch root solver with ``M`` and ``t_max``.
+
+    Args:
+        solver: :func:`collision.roots.quadratic_roots` or :func:`collision.roots.cubic_roots`
+            (imported lazily by the subclass: it starts Warp).
+        max_derivative: ``M`` of the robust division.
+        t_max: Root clamp.
+    """
+
+    def __init__(self, solver: Callable[..., torch.Tensor], max_derivative: float, t_max: float) -> None:
+        self._roots = solver
+        self.max_derivative = float(max_derivative)
+        self.t_max = float(t_max)
+
+    def solve(self, p: torch.Tensor) -> torch.Tensor:
+        """Roots ``(B, S, 2)`` (Re, Im per slot) of the rows of ``p``, NaN for non-finite rows."""
+        return solve_finite_rows(self._roots, p, t_max=self.t_max, max_derivative=self.max_derivative)
+
+
+def roots_as_complex(roots: torch.Tensor) -> np.ndarray:
+    """Solver output ``(..., 2)`` (Re, Im) as a detached complex numpy array ``(...)``."""
+    r = roots.detach().numpy()
+    return r[..., 0] + 1j * r[..., 1]
+
+
+def real_root(values: np.ndarray) -> np.ndarray:
+    """A real baseline root as complex: imaginary part 0 where finite, else NaN."""
+    v = np.asarray(values, dtype=np.float64)
+    return v + 1j * np.where(np.isfinite(v), 0.0, np.nan)
 
 
 def root_loss(re: torch.Tensor, im: torch.Tensor | None = None) -> torch.Tensor:
@@ -294,4 +371,117 @@ def views_for_start(
         "params": [f"{base}/{m}/params/**" for m in slots],
         "Re roots": [f"{base}/{m}/roots/{s}/re" for m, ss in slots.items() for s in ss],
         "Im roots": [f"{base}/{m}/roots/{s}/im" for m, ss in slots.items() for s in ss],
+    }
+
+
+def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> None:
+    """A paper scene's options (``--iters``, ``--lr``, ``--max-derivative``), paper defaults.
+
+    Args:
+        parser: Parser to extend.
+        default_iters: The scene's default number of Adam steps.
+    """
+    from scenes.registry import add_optimisation_arguments
+
+    add_optimisation_arguments(parser, default_iters=default_iters, default_lr=DEFAULT_LR,
+                               default_max_derivative=DEFAULT_MAX_DERIVATIVE)
+
+
+@dataclass(frozen=True)
+class ProposedRecord:
+    """What a scene logs and summarises of the proposed method for one start.
+
+    Attributes:
+        roots: Root name -> complex ``(K+1,)`` history, logged as ``.../roots/<name>/{re,im}``.
+        series: Further ``(K+1,)`` series, logged as ``.../<name>``.
+        summary: Entries appended to the start's ``proposed`` summary (after ``final_params``).
+    """
+
+    roots: Mapping[str, np.ndarray]
+    series: Mapping[str, np.ndarray] = field(default_factory=dict)
+    summary: Mapping[str, Any] = field(default_factory=dict)
+
+
+def run_scene(
+    args: argparse.Namespace,
+    log: Any,
+    *,
+    name: str,
+    starts: Sequence[Start],
+    param_names: Sequence[str],
+    run_proposed: Callable[..., AdamRun],
+    run_baseline: Callable[..., AdamRun],
+    proposed_roots: Sequence[str],
+    proposed_record: Callable[[AdamRun, int], ProposedRecord],
+    baseline_root: str,
+    baseline_key: str,
+    baseline_description: str,
+) -> dict[str, Any]:
+    """Runs a paper scene (proposed and baseline on all starts), logs it, returns the JSON summary.
+
+    Entities: ``/<name>/<start>/{proposed,baseline}/...`` as written by :func:`log_method`.
+
+    Args:
+        args: Parsed CLI arguments (``iters``, ``lr``, ``max_derivative``, ``seed``).
+        log: An open :class:`sim.logging.RerunLogger`.
+        name: Scene name (entity root ``/<name>``).
+        starts: The scene's starts.
+        param_names: Coefficient names.
+        run_proposed: ``run_proposed(starts, iters, lr, max_derivative, progress=...)``.
+        run_baseline: ``run_baseline(starts, iters, lr, progress=...)``.
+        proposed_roots: Root names the proposed records log (for the blueprint views).
+        proposed_record: ``(history, row) -> ProposedRecord`` of the proposed method.
+        baseline_root: Root name under which the baseline's real root is logged.
+        baseline_key: ``extras`` key of the baseline's root in its history.
+        baseline_description: The summary's ``baseline`` text.
+
+    Returns:
+        Summary: per start, ``proposed`` and ``baseline`` convergence figures.
+    """
+    import torch
+    from tqdm import tqdm
+
+    from sim.logging import time_series_blueprint
+
+    torch.manual_seed(args.seed)  # nothing is random; kept for the CLI contract
+    root = f"/{name}"
+    slots = {"proposed": tuple(proposed_roots), "baseline": (baseline_root,)}
+    log.send_blueprint(time_series_blueprint({s.name: views_for_start(root, s.name, slots) for s in starts}))
+    with tqdm(total=2 * (args.iters + 1), desc=name, unit="it", file=sys.stderr,
+              disable=None, leave=False) as bar:
+        tick = lambda _k: bar.update(1)  # noqa: E731
+        prop = run_proposed(starts, args.iters, args.lr, args.max_derivative, progress=tick)
+        base = run_baseline(starts, args.iters, args.lr, progress=tick)
+
+    starts_summary: dict[str, Any] = {}
+    for i, s in enumerate(starts):
+        prefix = f"{root}/{s.name}"
+        rec = proposed_record(prop, i)
+        log_method(log, f"{prefix}/proposed", prop, i, param_names, rec.roots, extra_series=rec.series)
+        log_method(log, f"{prefix}/baseline", base, i, param_names,
+                   {baseline_root: real_root(base.extras[baseline_key][:, i])})
+        starts_summary[s.name] = {
+            "p0": list(s.p0),
+            "fixed": [n for n, t in zip(param_names, s.trainable) if not t],
+            "note": s.note,
+            "proposed": {**convergence_summary(prop.loss[:, i]),
+                         "final_params": prop.params[-1, i].tolist(),
+                         **rec.summary},
+            "baseline": {**convergence_summary(base.loss[:, i]),
+                         "final_params": base.params[-1, i].tolist()},
+        }
+    return {
+        "scene": name,
+        "iters": args.iters,
+        "lr": args.lr,
+        "max_derivative": args.max_derivative,
+        "t_max": T_MAX,
+        "target": TARGET,
+        "tol": CONVERGENCE_TOL,
+        "seed": args.seed,
+        "baseline": baseline_description,
+        "proposed_converged": sum(v["proposed"]["converged"] for v in starts_summary.values()),
+        "baseline_converged": sum(v["baseline"]["converged"] for v in starts_summary.values()),
+        "final_loss": float(np.max(prop.loss[-1])),
+        "starts": starts_summary,
     }

@@ -59,7 +59,6 @@ Entities (``rr.Scalars`` on timelines ``iteration`` and ``frame``):
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -68,30 +67,27 @@ import numpy as np
 if TYPE_CHECKING:  # torch is imported lazily (fast CLI usage errors and --list)
     import torch
 
+# Scene attributes read by the CLI, shared by the paper scenes (float64 only; --iters, not --steps):
+from scenes.paper_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
 from scenes.paper_common import (
-    CONVERGENCE_TOL,
     DEFAULT_LR,
     DEFAULT_MAX_DERIVATIVE,
     T_MAX,
-    TARGET,
     AdamRun,
+    ProposedRecord,
+    RobustRoots,
     Start,
-    convergence_summary,
-    log_method,
+    add_scene_arguments,
     root_loss,
-    run_adam,
-    solve_finite_rows,
+    roots_as_complex,
+    run_scene,
+    run_starts,
     start,
-    views_for_start,
 )
 
 NAME = "paper_cubic"
 DESCRIPTION = "Paper cubic examples (degenerate starts q=0, a=0, ...): Adam on [q,a,b,c] with branch tracking, proposed vs Newton-autograd baseline"
 DEFAULT_ITERS = 3000
-PRECISIONS = ("float64",)
-"""The paper's examples (t_max = 1e150, gradients up to 1e153) need float64."""
-SUPPORTS_STEPS = False
-"""An optimisation scene: ``--iters``, not ``--steps``."""
 PARAM_NAMES = ("q", "a", "b", "c")
 SLOTS = ("t_minus", "t_mid", "t_plus")
 T_PLUS = 2
@@ -184,7 +180,7 @@ class RootTracker:
         return best
 
 
-class ProposedLoss:
+class ProposedLoss(RobustRoots):
     """Eq. ``lossagainwitht`` on the tracked root of the robust solver, mollified backward.
 
     Args:
@@ -196,18 +192,15 @@ class ProposedLoss:
     def __init__(self, batch: int, max_derivative: float = DEFAULT_MAX_DERIVATIVE, t_max: float = T_MAX) -> None:
         from collision.roots import cubic_roots  # imported lazily: starts Warp
 
-        self._roots = cubic_roots
-        self.max_derivative = float(max_derivative)
-        self.t_max = float(t_max)
+        super().__init__(cubic_roots, max_derivative, t_max)
         self.tracker = RootTracker(batch)
 
     def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, Mapping[str, np.ndarray]]:
         """Loss ``(B,)``; extras ``roots`` (complex ``(B, 3)``) and ``slot`` (``(B,)``)."""
         import torch
 
-        roots = solve_finite_rows(self._roots, p, t_max=self.t_max, max_derivative=self.max_derivative)  # (B, 3, 2)
-        r = roots.detach().numpy()
-        rc = r[..., 0] + 1j * r[..., 1]
+        roots = self.solve(p)  # (B, 3, 2)
+        rc = roots_as_complex(roots)
         slot = self.tracker.update(rc)
         tracked = roots[torch.arange(p.shape[0]), torch.from_numpy(slot)]  # (B, 2)
         loss = root_loss(tracked[:, 0], tracked[:, 1])
@@ -256,24 +249,12 @@ def run_proposed(
 ) -> AdamRun:
     """Adam with the proposed method and branch tracking on all ``starts``.
 
-    Args:
-        starts: Starting points.
-        iters: Adam steps.
-        lr: Learning rate.
-        max_derivative: ``M``.
-        progress: Optional per-iterate callback.
+    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``).
 
     Returns:
         History; ``extras["roots"]`` complex ``(iters+1, B, 3)``, ``extras["slot"]`` ``(iters+1, B)``.
     """
-    return run_adam(
-        [s.p0 for s in starts],
-        ProposedLoss(len(starts), max_derivative),
-        iters,
-        lr=lr,
-        trainable=[s.trainable for s in starts],
-        progress=progress,
-    )
+    return run_starts(starts, ProposedLoss(len(starts), max_derivative), iters, lr, progress)
 
 
 def run_baseline(
@@ -281,32 +262,17 @@ def run_baseline(
 ) -> AdamRun:
     """Adam with the autograd-through-Newton baseline on all ``starts``.
 
-    Args:
-        starts: Starting points.
-        iters: Adam steps.
-        lr: Learning rate.
-        progress: Optional per-iterate callback.
+    Arguments as :func:`scenes.paper_common.run_starts`.
 
     Returns:
         History; ``extras["t"]`` real ``(iters+1, B)``.
     """
-    with np.errstate(all="ignore"):
-        return run_adam(
-            [s.p0 for s in starts],
-            BaselineLoss(),
-            iters,
-            lr=lr,
-            trainable=[s.trainable for s in starts],
-            progress=progress,
-        )
+    return run_starts(starts, BaselineLoss(), iters, lr, progress, ignore_fp_errors=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Scene options (``--iters``, ``--lr``, ``--max-derivative``)."""
-    from scenes.registry import add_optimisation_arguments
-
-    add_optimisation_arguments(parser, default_iters=DEFAULT_ITERS, default_lr=DEFAULT_LR,
-                               default_max_derivative=DEFAULT_MAX_DERIVATIVE)
+    add_scene_arguments(parser, DEFAULT_ITERS)
 
 
 def tracked_events(slots: np.ndarray, roots: np.ndarray) -> dict[str, list[int]]:
@@ -328,72 +294,27 @@ def tracked_events(slots: np.ndarray, roots: np.ndarray) -> dict[str, list[int]]
     }
 
 
-def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
-    """Runs the scene, logs it and returns the JSON summary.
-
-    Args:
-        args: Parsed CLI arguments (``iters``, ``lr``, ``max_derivative``, ``seed``).
-        log: An open :class:`sim.logging.RerunLogger`.
-
-    Returns:
-        Summary: per start, ``proposed`` and ``baseline`` convergence figures.
-    """
-    import torch
-    from tqdm import tqdm
-
-    from sim.logging import time_series_blueprint
-
-    torch.manual_seed(args.seed)  # nothing is random; kept for the CLI contract
-    root = f"/{NAME}"
-    log.send_blueprint(
-        time_series_blueprint(
-            {s.name: views_for_start(root, s.name, {"proposed": SLOTS + ("tracked",), "baseline": ("tracked",)})
-             for s in STARTS}
-        )
+def proposed_record(run: AdamRun, row: int) -> ProposedRecord:
+    """Logged roots (the solver's slots and the tracked root), the ``tracked_slot`` series and the
+    summary's ``final_root``, ``final_slot`` and :func:`tracked_events` of one start's proposed run."""
+    roots = run.extras["roots"][:, row, :]
+    slots = run.extras["slot"][:, row]
+    tracked = roots[np.arange(len(slots)), slots]
+    return ProposedRecord(
+        roots={**{slot: roots[:, j] for j, slot in enumerate(SLOTS)}, "tracked": tracked},
+        series={"tracked_slot": slots},
+        summary={"final_root": [tracked[-1].real, tracked[-1].imag],
+                 "final_slot": SLOTS[int(slots[-1])],
+                 **tracked_events(slots, roots)},
     )
-    with tqdm(total=2 * (args.iters + 1), desc=NAME, unit="it", file=sys.stderr,
-              disable=None, leave=False) as bar:
-        tick = lambda _k: bar.update(1)  # noqa: E731
-        prop = run_proposed(STARTS, args.iters, args.lr, args.max_derivative, progress=tick)
-        base = run_baseline(STARTS, args.iters, args.lr, progress=tick)
 
-    n = prop.loss.shape[0]
-    starts_summary: dict[str, Any] = {}
-    for i, s in enumerate(STARTS):
-        prefix = f"{root}/{s.name}"
-        roots = prop.extras["roots"][:, i, :]
-        slots = prop.extras["slot"][:, i]
-        tracked = roots[np.arange(n), slots]
-        log_method(log, f"{prefix}/proposed", prop, i, PARAM_NAMES,
-                   {**{slot: roots[:, j] for j, slot in enumerate(SLOTS)}, "tracked": tracked},
-                   extra_series={"tracked_slot": slots})
-        tb = base.extras["t"][:, i]
-        log_method(log, f"{prefix}/baseline", base, i, PARAM_NAMES,
-                   {"tracked": tb + 1j * np.where(np.isfinite(tb), 0.0, np.nan)})
-        starts_summary[s.name] = {
-            "p0": list(s.p0),
-            "fixed": [nm for nm, t in zip(PARAM_NAMES, s.trainable) if not t],
-            "note": s.note,
-            "proposed": {**convergence_summary(prop.loss[:, i]),
-                         "final_params": prop.params[-1, i].tolist(),
-                         "final_root": [tracked[-1].real, tracked[-1].imag],
-                         "final_slot": SLOTS[int(slots[-1])],
-                         **tracked_events(slots, roots)},
-            "baseline": {**convergence_summary(base.loss[:, i]),
-                         "final_params": base.params[-1, i].tolist()},
-        }
-    return {
-        "scene": NAME,
-        "iters": args.iters,
-        "lr": args.lr,
-        "max_derivative": args.max_derivative,
-        "t_max": T_MAX,
-        "target": TARGET,
-        "tol": CONVERGENCE_TOL,
-        "seed": args.seed,
-        "baseline": f"torch autograd through {NEWTON_ITERATIONS} real Newton iterations from t0={NEWTON_START:g}",
-        "proposed_converged": sum(v["proposed"]["converged"] for v in starts_summary.values()),
-        "baseline_converged": sum(v["baseline"]["converged"] for v in starts_summary.values()),
-        "final_loss": float(np.max(prop.loss[-1])),
-        "starts": starts_summary,
-    }
+
+def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
+    """Runs the scene, logs it and returns the JSON summary (see :func:`scenes.paper_common.run_scene`)."""
+    return run_scene(
+        args, log, name=NAME, starts=STARTS, param_names=PARAM_NAMES,
+        run_proposed=run_proposed, run_baseline=run_baseline,
+        proposed_roots=SLOTS + ("tracked",), proposed_record=proposed_record,
+        baseline_root="tracked", baseline_key="t",
+        baseline_description=f"torch autograd through {NEWTON_ITERATIONS} real Newton iterations from t0={NEWTON_START:g}",
+    )

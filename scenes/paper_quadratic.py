@@ -42,7 +42,6 @@ Entities (``rr.Scalars`` on timelines ``iteration`` and ``frame``, one row per i
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -51,30 +50,27 @@ import numpy as np
 if TYPE_CHECKING:  # torch is imported lazily (fast CLI usage errors and --list)
     import torch
 
+# Scene attributes read by the CLI, shared by the paper scenes (float64 only; --iters, not --steps):
+from scenes.paper_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
 from scenes.paper_common import (
-    CONVERGENCE_TOL,
     DEFAULT_LR,
     DEFAULT_MAX_DERIVATIVE,
     T_MAX,
-    TARGET,
     AdamRun,
+    ProposedRecord,
+    RobustRoots,
     Start,
-    convergence_summary,
-    log_method,
+    add_scene_arguments,
     root_loss,
-    run_adam,
-    solve_finite_rows,
+    roots_as_complex,
+    run_scene,
+    run_starts,
     start,
-    views_for_start,
 )
 
 NAME = "paper_quadratic"
 DESCRIPTION = "Paper quadratic examples (tables bad_a/bad_ab/bad_abc, Figure example-3): Adam on [a,b,c], proposed vs autograd baseline"
 DEFAULT_ITERS = 4000
-PRECISIONS = ("float64",)
-"""The paper's examples (t_max = 1e150, gradients up to 1e153) need float64."""
-SUPPORTS_STEPS = False
-"""An optimisation scene: ``--iters``, not ``--steps``."""
 PARAM_NAMES = ("a", "b", "c")
 SLOTS = ("t_minus", "t_plus")
 T_PLUS = 1
@@ -89,7 +85,7 @@ STARTS: tuple[Start, ...] = (
 )
 
 
-class ProposedLoss:
+class ProposedLoss(RobustRoots):
     """Eq. ``lossagainwitht`` on slot ``t+`` of the robust solver, mollified backward.
 
     Args:
@@ -100,16 +96,13 @@ class ProposedLoss:
     def __init__(self, max_derivative: float = DEFAULT_MAX_DERIVATIVE, t_max: float = T_MAX) -> None:
         from collision.roots import quadratic_roots  # imported lazily: starts Warp
 
-        self._roots = quadratic_roots
-        self.max_derivative = float(max_derivative)
-        self.t_max = float(t_max)
+        super().__init__(quadratic_roots, max_derivative, t_max)
 
     def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, Mapping[str, np.ndarray]]:
         """Loss ``(B,)`` and extras ``roots`` (complex ``(B, 2)``, slots ``(t-, t+)``)."""
-        roots = solve_finite_rows(self._roots, p, t_max=self.t_max, max_derivative=self.max_derivative)  # (B, 2, 2)
+        roots = self.solve(p)  # (B, 2, 2)
         loss = root_loss(roots[:, T_PLUS, 0], roots[:, T_PLUS, 1])
-        r = roots.detach().numpy()
-        return loss, {"roots": r[..., 0] + 1j * r[..., 1]}
+        return loss, {"roots": roots_as_complex(roots)}
 
 
 def quadform_t_plus(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -153,24 +146,12 @@ def run_proposed(
 ) -> AdamRun:
     """Adam with the proposed method on all ``starts`` (used by the scene and the table tests).
 
-    Args:
-        starts: Starting points.
-        iters: Adam steps.
-        lr: Learning rate.
-        max_derivative: ``M``.
-        progress: Optional per-iterate callback.
+    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``).
 
     Returns:
         History; ``extras["roots"]`` is complex ``(iters+1, B, 2)``.
     """
-    return run_adam(
-        [s.p0 for s in starts],
-        ProposedLoss(max_derivative),
-        iters,
-        lr=lr,
-        trainable=[s.trainable for s in starts],
-        progress=progress,
-    )
+    return run_starts(starts, ProposedLoss(max_derivative), iters, lr, progress)
 
 
 def run_baseline(
@@ -178,100 +159,35 @@ def run_baseline(
 ) -> AdamRun:
     """Adam with the autograd-through-the-formula baseline on all ``starts``.
 
-    Args:
-        starts: Starting points.
-        iters: Adam steps.
-        lr: Learning rate.
-        progress: Optional per-iterate callback.
+    Arguments as :func:`scenes.paper_common.run_starts`.
 
     Returns:
         History; ``extras["t_plus"]`` is real ``(iters+1, B)``.
     """
-    with np.errstate(all="ignore"):
-        return run_adam(
-            [s.p0 for s in starts],
-            BaselineLoss(),
-            iters,
-            lr=lr,
-            trainable=[s.trainable for s in starts],
-            progress=progress,
-        )
+    return run_starts(starts, BaselineLoss(), iters, lr, progress, ignore_fp_errors=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Scene options (``--iters``, ``--lr``, ``--max-derivative``)."""
-    from scenes.registry import add_optimisation_arguments
-
-    add_optimisation_arguments(parser, default_iters=DEFAULT_ITERS, default_lr=DEFAULT_LR,
-                               default_max_derivative=DEFAULT_MAX_DERIVATIVE)
+    add_scene_arguments(parser, DEFAULT_ITERS)
 
 
-def _real_root(values: np.ndarray) -> np.ndarray:
-    """Baseline roots as complex: imaginary part 0 where finite (the formula is real), else NaN."""
-    v = np.asarray(values, dtype=np.float64)
-    return v + 1j * np.where(np.isfinite(v), 0.0, np.nan)
+def proposed_record(run: AdamRun, row: int) -> ProposedRecord:
+    """Logged roots (both slots) and the summary's ``final_t_plus`` of one start's proposed run."""
+    roots = run.extras["roots"][:, row, :]
+    t_final = roots[-1, T_PLUS]
+    return ProposedRecord(
+        roots={slot: roots[:, j] for j, slot in enumerate(SLOTS)},
+        summary={"final_t_plus": [t_final.real, t_final.imag]},
+    )
 
 
 def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
-    """Runs the scene, logs it and returns the JSON summary.
-
-    Args:
-        args: Parsed CLI arguments (``iters``, ``lr``, ``max_derivative``, ``seed``).
-        log: An open :class:`sim.logging.RerunLogger`.
-
-    Returns:
-        Summary: per start, ``proposed`` and ``baseline`` convergence figures.
-    """
-    import torch
-    from tqdm import tqdm
-
-    from sim.logging import time_series_blueprint
-
-    torch.manual_seed(args.seed)  # nothing is random; kept for the CLI contract
-    root = f"/{NAME}"
-    log.send_blueprint(
-        time_series_blueprint(
-            {s.name: views_for_start(root, s.name, {"proposed": SLOTS, "baseline": ("t_plus",)})
-             for s in STARTS}
-        )
+    """Runs the scene, logs it and returns the JSON summary (see :func:`scenes.paper_common.run_scene`)."""
+    return run_scene(
+        args, log, name=NAME, starts=STARTS, param_names=PARAM_NAMES,
+        run_proposed=run_proposed, run_baseline=run_baseline,
+        proposed_roots=SLOTS, proposed_record=proposed_record,
+        baseline_root="t_plus", baseline_key="t_plus",
+        baseline_description="torch autograd through the real quadratic formula (eq. quadform)",
     )
-    with tqdm(total=2 * (args.iters + 1), desc=NAME, unit="it", file=sys.stderr,
-              disable=None, leave=False) as bar:
-        tick = lambda _k: bar.update(1)  # noqa: E731
-        prop = run_proposed(STARTS, args.iters, args.lr, args.max_derivative, progress=tick)
-        base = run_baseline(STARTS, args.iters, args.lr, progress=tick)
-
-    starts_summary: dict[str, Any] = {}
-    for i, s in enumerate(STARTS):
-        prefix = f"{root}/{s.name}"
-        roots = prop.extras["roots"][:, i, :]
-        log_method(log, f"{prefix}/proposed", prop, i, PARAM_NAMES,
-                   {slot: roots[:, j] for j, slot in enumerate(SLOTS)})
-        log_method(log, f"{prefix}/baseline", base, i, PARAM_NAMES,
-                   {"t_plus": _real_root(base.extras["t_plus"][:, i])})
-        t_final = roots[-1, T_PLUS]
-        starts_summary[s.name] = {
-            "p0": list(s.p0),
-            "fixed": [n for n, t in zip(PARAM_NAMES, s.trainable) if not t],
-            "note": s.note,
-            "proposed": {**convergence_summary(prop.loss[:, i]),
-                         "final_params": prop.params[-1, i].tolist(),
-                         "final_t_plus": [t_final.real, t_final.imag]},
-            "baseline": {**convergence_summary(base.loss[:, i]),
-                         "final_params": base.params[-1, i].tolist()},
-        }
-    return {
-        "scene": NAME,
-        "iters": args.iters,
-        "lr": args.lr,
-        "max_derivative": args.max_derivative,
-        "t_max": T_MAX,
-        "target": TARGET,
-        "tol": CONVERGENCE_TOL,
-        "seed": args.seed,
-        "baseline": "torch autograd through the real quadratic formula (eq. quadform)",
-        "proposed_converged": sum(v["proposed"]["converged"] for v in starts_summary.values()),
-        "baseline_converged": sum(v["baseline"]["converged"] for v in starts_summary.values()),
-        "final_loss": float(np.max(prop.loss[-1])),
-        "starts": starts_summary,
-    }
