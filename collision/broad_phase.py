@@ -1,0 +1,434 @@
+"""Continuous-collision broad phase for triangle meshes moving linearly over one time step.
+
+:func:`candidate_pairs` returns every vertex-face and edge-edge pair whose swept boxes come within
+``inflation`` of each other, minus adjacent pairs, as the input of the narrow phase
+(:mod:`collision.ccd`). :class:`BroadPhase` is the same query with the topology validated once, for
+a simulation whose meshes keep their connectivity from step to step.
+
+Definitions:
+
+* The swept box of a primitive (vertex, edge, face) is the axis-aligned box of its vertices at the
+  start (``x0``) and end (``x1``) of the step; it holds the primitive at every time of the step.
+* A pair is a candidate when the two swept boxes, the first widened by ``inflation`` on every side,
+  overlap (closed intervals: touching boxes count). Equivalently the per-axis gap between the boxes
+  is at most ``inflation``; pass the narrow phase's thickness, since two primitives closer than
+  ``d`` always have boxes within ``d`` on every axis.
+* Excluded: a vertex and a face containing it; an edge and itself or an edge sharing a vertex.
+* Bodies: ``groups[v]`` is the body of vertex ``v`` (every face and edge lies in one body). Pairs
+  within one body are kept only where ``self_collision`` allows it; a ``static`` body never collides
+  with itself nor with another static body.
+
+Conservative float32 boxes (Warp's BVH is float32): each float64 box coordinate ``c`` of a box whose
+largest magnitude on that axis is ``m`` becomes ``fl32(c -/+ (m * 2^-21 + 2^-126))`` (lower bounds
+move down, upper bounds up; clamped to +-FLT_MAX first). Rounding to float32 moves a number by at
+most ``2^-24 m`` (``2^-149`` below FLT_MIN = 2^-126), so the float32 box contains the float64 box and
+no pair is ever dropped; the factor-8 margin also covers the float64 inflation arithmetic and a
+narrow phase evaluating ``x0 + t (x1 - x0)``. The price is a few extra candidates whose boxes are
+within ``~4.8e-7`` relative of touching. See :mod:`kernels.broad_phase`.
+
+Example:
+    >>> import numpy as np
+    >>> from collision.broad_phase import candidate_pairs
+    >>> faces = np.array([[0, 1, 2]])
+    >>> x0 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 1.0]])
+    >>> x1 = x0.copy()
+    >>> x1[3, 2] = -1.0                                   # the free vertex falls through the face
+    >>> vf, ee = candidate_pairs(x0, x1, faces)
+    >>> vf.tolist(), ee.tolist()
+    ([[3, 0]], [])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kernels import broad_phase as _k
+
+__all__ = ["PAD_ABS", "PAD_REL", "BroadPhase", "candidate_pairs", "mesh_edges"]
+
+PAD_REL = 2.0**-21
+"""Relative float32 pad of every box coordinate (times the box's largest magnitude on that axis)."""
+PAD_ABS = 2.0**-126
+"""Absolute float32 pad (FLT_MIN), for coordinates near zero."""
+
+_DEFAULT_DEVICE = "cpu"
+_INT32_MAX = np.iinfo(np.int32).max
+_INITIAL_PAIRS_PER_PRIMITIVE = 8
+"""Starting capacity of the pair buffers (per query primitive); they grow on overflow."""
+_initialised = False
+
+
+def _init() -> None:
+    global _initialised
+    if not _initialised:
+        # keep Warp's banner off stdout: scene CLIs print exactly one JSON line there
+        wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.config.log_level
+        wp.init()
+        _initialised = True
+
+
+# ----------------------------------------------------------------------------------------------
+# validation
+
+
+def _positions(x, name: str) -> np.ndarray:
+    arr = np.asarray(x)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise ValueError(f"{name}: expected a numeric (V, 3) array of positions, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr):
+        raise ValueError(f"{name}: positions must be real, got complex dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name}: expected shape (V, 3), got {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        rows = np.flatnonzero(bad.any(axis=1))
+        shown = ", ".join(f"{name}[{r}]={arr[r].tolist()}" for r in rows[:5])
+        more = f" (and {len(rows) - 5} more)" if len(rows) > 5 else ""
+        raise ValueError(f"{name}: positions must be finite; non-finite vertices: {shown}{more}")
+    return arr
+
+
+def _indices(a, name: str, width: int, what: str) -> np.ndarray:
+    arr = np.asarray(a)
+    if arr.size == 0 and arr.ndim <= 2:
+        if arr.ndim == 2 and arr.shape[1] != width:
+            raise ValueError(f"{name}: expected shape (N, {width}), got {arr.shape}")
+        return np.zeros((0, width), dtype=np.int32)
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name}: expected integer vertex indices, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise ValueError(f"{name}: expected shape (N, {width}), got {arr.shape}")
+    if arr.shape[0] > _INT32_MAX:
+        raise ValueError(f"{name}: {arr.shape[0]} {what}s exceed the int32 index range")
+    neg = np.argwhere(arr < 0)
+    if len(neg):
+        r, c = neg[0]
+        raise ValueError(f"{name}: negative vertex index {arr[r, c]} at {name}[{r}, {c}]")
+    rep = np.flatnonzero(np.any(np.diff(np.sort(arr, axis=1), axis=1) == 0, axis=1))
+    if len(rep):
+        r = rep[0]
+        raise ValueError(f"{name}: {what} {r} repeats a vertex index: {arr[r].tolist()}")
+    return arr
+
+
+def _check_range(arr: np.ndarray, name: str, num_vertices: int) -> None:
+    if arr.size and arr.max() >= num_vertices:
+        r, c = np.argwhere(arr >= num_vertices)[0]
+        raise ValueError(
+            f"{name}: vertex index {arr[r, c]} at {name}[{r}, {c}] is out of range for {num_vertices} vertices"
+        )
+
+
+def _body_flags(value, name: str, num_bodies: int, default: bool) -> np.ndarray:
+    """Per-body 0/1 flags from a bool (every body) or a sequence with one flag per body id."""
+    if value is None:
+        return np.full(num_bodies, int(default), dtype=np.int32)
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        if arr.dtype != bool and not (np.issubdtype(arr.dtype, np.integer) and int(arr) in (0, 1)):
+            raise ValueError(f"{name}: expected a bool or one bool per body, got {value!r}")
+        return np.full(num_bodies, int(bool(arr)), dtype=np.int32)
+    if arr.ndim != 1 or (arr.size and not (arr.dtype == bool or np.issubdtype(arr.dtype, np.integer))):
+        raise ValueError(f"{name}: expected a bool or a 1-D sequence of bools (one per body id), got {value!r}")
+    if arr.shape[0] < num_bodies:
+        raise ValueError(
+            f"{name}: expected one flag per body id (groups has {num_bodies} bodies), got {arr.shape[0]}"
+        )
+    return np.ascontiguousarray(arr[:num_bodies] != 0, dtype=np.int32)
+
+
+def mesh_edges(faces) -> np.ndarray:
+    """Unique undirected edges of a triangle mesh.
+
+    Args:
+        faces: (F, 3) non-negative integer vertex indices.
+
+    Returns:
+        int64 (E, 2) array, each row ``(i, j)`` with ``i < j``, rows sorted lexicographically.
+
+    Raises:
+        ValueError: ``faces`` not an (F, 3) integer array, negative or repeated indices.
+    """
+    f = _indices(faces, "faces", 3, "face").astype(np.int64, copy=False)
+    if len(f) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    # unique on one int64 key per edge (lo * n + hi sorts like the rows; much faster than axis=0)
+    n = int(f.max()) + 1
+    keys = np.unique(e[:, 0] * n + e[:, 1])
+    return np.stack([keys // n, keys % n], axis=1)
+
+
+# ----------------------------------------------------------------------------------------------
+# query
+
+
+class BroadPhase:
+    """Broad phase over fixed mesh topology; call :meth:`query` once per step.
+
+    Args:
+        faces: (F, 3) integer vertex indices.
+        edges: (E, 2) integer vertex indices; ``None`` derives :func:`mesh_edges` of ``faces``.
+        num_vertices: number of vertices ``V`` (rows of the positions passed to :meth:`query`).
+        groups: (V,) non-negative integer body id per vertex; ``None`` puts every vertex in body 0.
+            Every face and every edge must lie within one body.
+        self_collision: ``True`` (every body may collide with itself), ``False`` (no body may), or
+            one bool per body id (``len >= max(groups) + 1``, indexed by body id).
+        static: ``None`` (no static body) or one bool per body id: static bodies never move, never
+            collide with themselves (whatever ``self_collision`` says) nor with other static bodies.
+        device: Warp device for the BVHs and kernels (default ``"cpu"``).
+        rebuild_every: :meth:`query` rebuilds the BVHs on every ``rebuild_every``-th call and
+            refits them (same tree, new boxes) in between; see its ``rebuild`` argument.
+
+    Raises:
+        ValueError: naming the offending argument (shapes, dtypes, negative or out-of-range indices,
+            repeated indices within a face or edge, faces/edges spanning two bodies, flag lengths).
+    """
+
+    def __init__(
+        self,
+        faces,
+        edges=None,
+        *,
+        num_vertices: int,
+        groups=None,
+        self_collision=True,
+        static=None,
+        device=None,
+        rebuild_every: int = 16,
+    ):
+        _init()
+        nv = int(num_vertices)
+        if nv < 0 or nv > _INT32_MAX:
+            raise ValueError(f"num_vertices: expected 0 <= num_vertices <= {_INT32_MAX}, got {num_vertices}")
+        self.num_vertices = nv
+        self.device = wp.get_device(device if device is not None else _DEFAULT_DEVICE)
+
+        f = _indices(faces, "faces", 3, "face")
+        _check_range(f, "faces", nv)
+        if edges is None:
+            e = mesh_edges(f)
+        else:
+            e = _indices(edges, "edges", 2, "edge")
+            _check_range(e, "edges", nv)
+        self.faces = np.ascontiguousarray(f, dtype=np.int32)
+        self.edges = np.ascontiguousarray(e, dtype=np.int32)
+
+        if groups is None:
+            g = np.zeros(nv, dtype=np.int32)
+        else:
+            g = np.asarray(groups)
+            if g.ndim != 1 or g.shape[0] != nv:
+                raise ValueError(f"groups: expected shape ({nv},) (one body id per vertex), got {g.shape}")
+            if g.size and not np.issubdtype(g.dtype, np.integer):
+                raise ValueError(f"groups: expected integer body ids, got dtype {g.dtype}")
+            if g.size and g.min() < 0:
+                i = int(np.argmin(g))
+                raise ValueError(f"groups: body ids must be non-negative, got groups[{i}]={g[i]}")
+            if g.size and g.max() > _INT32_MAX:
+                raise ValueError(f"groups: body ids must fit in int32, got {g.max()}")
+            g = np.ascontiguousarray(g, dtype=np.int32)
+        num_bodies = int(g.max()) + 1 if g.size else 1
+        face_body = g[self.faces[:, 0]] if len(self.faces) else np.zeros(0, dtype=np.int32)
+        edge_body = g[self.edges[:, 0]] if len(self.edges) else np.zeros(0, dtype=np.int32)
+        for arr, body, what in ((self.faces, face_body, "face"), (self.edges, edge_body, "edge")):
+            if len(arr):
+                span = np.flatnonzero(np.any(g[arr] != body[:, None], axis=1))
+                if len(span):
+                    r = span[0]
+                    raise ValueError(
+                        f"groups: {what} {r} {arr[r].tolist()} spans bodies {sorted(set(g[arr[r]].tolist()))}; "
+                        f"every {what} must lie within one body"
+                    )
+        self.groups = g
+        self.num_bodies = num_bodies
+        static_flags = _body_flags(static, "static", num_bodies, default=False)
+        self_flags = _body_flags(self_collision, "self_collision", num_bodies, default=True)
+        self_flags = self_flags & (1 - static_flags)  # a static body never collides with itself
+
+        dev = self.device
+        self._faces = wp.array(self.faces, dtype=wp.vec3i, device=dev)
+        self._edges = wp.array(self.edges, dtype=wp.vec2i, device=dev)
+        self._vertex_body = wp.array(g, dtype=wp.int32, device=dev)
+        self._face_body = wp.array(np.ascontiguousarray(face_body, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._edge_body = wp.array(np.ascontiguousarray(edge_body, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._self_ok = wp.array(self_flags, dtype=wp.int32, device=dev)
+        self._static = wp.array(static_flags, dtype=wp.int32, device=dev)
+
+        nf, ne = len(self.faces), len(self.edges)
+        self._v_lo = wp.empty(nv, dtype=wp.vec3, device=dev)
+        self._v_hi = wp.empty(nv, dtype=wp.vec3, device=dev)
+        self._f_lo = wp.empty(nf, dtype=wp.vec3, device=dev)
+        self._f_hi = wp.empty(nf, dtype=wp.vec3, device=dev)
+        self._e_lo = wp.empty(ne, dtype=wp.vec3, device=dev)
+        self._e_hi = wp.empty(ne, dtype=wp.vec3, device=dev)
+        self._eq_lo = wp.empty(ne, dtype=wp.vec3, device=dev)
+        self._eq_hi = wp.empty(ne, dtype=wp.vec3, device=dev)
+        self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        # output buffers grow on overflow and are kept for the next query
+        self._vf_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * nv + 64, dtype=wp.vec2i, device=dev)
+        self._ee_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * ne + 64, dtype=wp.vec2i, device=dev)
+        self._face_bvh = None
+        self._edge_bvh = None
+        self._queries_since_build = 0
+        self.rebuild_every = int(rebuild_every)
+        if self.rebuild_every < 1:
+            raise ValueError(f"rebuild_every: expected a positive integer, got {rebuild_every!r}")
+        # nothing can collide when no body may touch itself and at most one body is not static
+        allowed = self_flags.any() or (num_bodies > 1 and (static_flags == 0).any())
+        self._any_allowed = bool(allowed)
+
+    def query(self, x0, x1, inflation: float = 0.0, *, rebuild: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate pairs for vertices moving linearly from ``x0`` to ``x1``.
+
+        Args:
+            x0, x1: (V, 3) finite positions at the start and end of the step (float64).
+            inflation: non-negative distance added around every query box (the contact thickness).
+            rebuild: ``True`` rebuilds the BVHs from scratch, ``False`` refits the existing trees to
+                the new boxes (builds them if there are none yet), ``None`` (default) rebuilds on
+                every ``rebuild_every``-th query and refits otherwise. The pairs are the same
+                either way; a refitted tree is only slower to query as the meshes deform.
+
+        Returns:
+            ``(vf, ee)``: int64 ``(K, 2)`` rows ``[vertex, face]`` and int64 ``(L, 2)`` rows
+            ``[edge_a, edge_b]`` with ``edge_a < edge_b`` (indices into ``faces`` / ``edges``),
+            both sorted lexicographically.
+        """
+        a = _positions(x0, "x0")
+        b = _positions(x1, "x1")
+        if a.shape != b.shape:
+            raise ValueError(f"x1: shape {b.shape} does not match x0 shape {a.shape}")
+        if a.shape[0] != self.num_vertices:
+            raise ValueError(f"x0: expected {self.num_vertices} vertices (the mesh's), got {a.shape[0]}")
+        try:
+            infl = float(inflation)
+        except (TypeError, ValueError):
+            raise ValueError(f"inflation: expected a non-negative finite number, got {inflation!r}") from None
+        if not np.isfinite(infl) or infl < 0.0:
+            raise ValueError(f"inflation: expected a non-negative finite number, got {inflation!r}")
+
+        empty = np.zeros((0, 2), dtype=np.int64)
+        nv, nf, ne = self.num_vertices, len(self.faces), len(self.edges)
+        if nv == 0 or not self._any_allowed:
+            return empty, empty.copy()
+        if rebuild is None:
+            rebuild = self._queries_since_build >= self.rebuild_every
+        if rebuild or (nf and self._face_bvh is None) or (ne > 1 and self._edge_bvh is None):
+            rebuild = True
+            self._queries_since_build = 0
+        self._queries_since_build += 1
+
+        dev = self.device
+        xa = wp.array(a, dtype=wp.vec3d, device=dev)
+        xb = wp.array(b, dtype=wp.vec3d, device=dev)
+        inf64 = wp.float64(infl)
+
+        vf = empty
+        if nf:
+            wp.launch(
+                _k.vertex_boxes_kernel, dim=nv, inputs=[xa, xb, inf64], outputs=[self._v_lo, self._v_hi], device=dev
+            )
+            wp.launch(
+                _k.face_boxes_kernel, dim=nf, inputs=[xa, xb, self._faces], outputs=[self._f_lo, self._f_hi], device=dev
+            )
+            if rebuild:
+                self._face_bvh = wp.Bvh(self._f_lo, self._f_hi)
+            else:
+                self._face_bvh.refit()
+            inputs = [self._face_bvh.id, self._v_lo, self._v_hi, self._faces, self._vertex_body, self._face_body]
+            vf, self._vf_buf = self._pairs(_k.vertex_face_pairs_kernel, nv, inputs, self._vf_buf)
+        ee = empty.copy()
+        if ne > 1:
+            wp.launch(
+                _k.edge_boxes_kernel,
+                dim=ne,
+                inputs=[xa, xb, self._edges, inf64],
+                outputs=[self._e_lo, self._e_hi, self._eq_lo, self._eq_hi],
+                device=dev,
+            )
+            if rebuild:
+                self._edge_bvh = wp.Bvh(self._e_lo, self._e_hi)
+            else:
+                self._edge_bvh.refit()
+            inputs = [self._edge_bvh.id, self._eq_lo, self._eq_hi, self._edges, self._edge_body]
+            ee, self._ee_buf = self._pairs(_k.edge_edge_pairs_kernel, ne, inputs, self._ee_buf)
+        return vf, ee
+
+    def _pairs(self, kernel, n: int, inputs: list, buf: wp.array) -> tuple[np.ndarray, wp.array]:
+        """One launch into ``buf``; on overflow grow it to the exact count and launch again.
+
+        Returns the pairs (int64, sorted lexicographically) and the buffer to keep.
+        """
+        dev = self.device
+        args = [*inputs, self._self_ok, self._static]
+        for _attempt in range(2):
+            self._counter.zero_()
+            wp.launch(kernel, dim=n, inputs=[*args, self._counter, buf], device=dev)
+            total = int(self._counter.numpy()[0])
+            if total < 0:
+                raise RuntimeError("broad phase: more than 2^31 candidate pairs; reduce inflation")
+            if total <= buf.shape[0]:
+                break
+            buf = wp.empty(total + total // 4, dtype=wp.vec2i, device=dev)
+        out = buf.numpy()[:total].astype(np.int64)
+        # grouped by query primitive on the CPU, any order on a GPU: sort for a deterministic result
+        order = np.lexsort((out[:, 1], out[:, 0]))
+        return out[order], buf
+
+
+def candidate_pairs(
+    x0,
+    x1,
+    faces,
+    edges=None,
+    *,
+    groups=None,
+    inflation: float = 0.0,
+    self_collision=True,
+    static=None,
+    device=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex-face and edge-edge candidate pairs of meshes moving linearly from ``x0`` to ``x1``.
+
+    Args:
+        x0, x1: (V, 3) finite float64 vertex positions at the start and end of the step.
+        faces: (F, 3) integer vertex indices.
+        edges: (E, 2) integer vertex indices; ``None`` derives the unique edges of ``faces``
+            (:func:`mesh_edges`), and ``ee`` then indexes ``mesh_edges(faces)``.
+        groups: (V,) non-negative integer body id per vertex (``None``: one body, id 0).
+        inflation: non-negative; pairs whose swept boxes are within this distance on every axis
+            are candidates (pass the narrow phase's thickness).
+        self_collision: ``True`` / ``False`` for every body, or one bool per body id.
+        static: ``None`` or one bool per body id; static bodies never collide with themselves or
+            with each other.
+        device: Warp device (default ``"cpu"``).
+
+    Returns:
+        ``(vf, ee)``: int64 ``(K, 2)`` ``[vertex, face]`` and int64 ``(L, 2)`` ``[edge_a, edge_b]``
+        (``edge_a < edge_b``), sorted lexicographically. Adjacent pairs (a vertex of the face, edges
+        sharing a vertex) are excluded. No pair whose float64 swept boxes overlap is ever missing
+        (the float32 BVH boxes are padded outwards, see the module docstring).
+
+    Raises:
+        ValueError: naming the argument, for wrong shapes or dtypes, mismatched ``x0``/``x1``,
+            non-finite positions, negative, repeated or out-of-range indices, faces or edges that
+            span two bodies, per-body flag arrays shorter than the number of bodies, negative
+            or non-finite inflation.
+    """
+    a = _positions(x0, "x0")
+    b = _positions(x1, "x1")
+    if a.shape != b.shape:
+        raise ValueError(f"x1: shape {b.shape} does not match x0 shape {a.shape}")
+    bp = BroadPhase(
+        faces,
+        edges,
+        num_vertices=a.shape[0],
+        groups=groups,
+        self_collision=self_collision,
+        static=static,
+        device=device,
+    )
+    return bp.query(a, b, inflation)

@@ -1,0 +1,158 @@
+"""Batched continuous collision detection (narrow phase) over the kernels of :mod:`kernels.ccd`.
+
+Argument order follows ipctk: vertex-face ``(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1,
+t2_t1)`` and edge-edge ``(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1)``; each
+argument is an (N, 3) array of positions [m] (a single (3,) point is accepted as N = 1). The
+motion over the step is linear, ``x(t) = x_t0 + t (x_t1 - x_t0)`` with ``t`` in ``[0, 1]``.
+
+Example:
+    >>> import numpy as np
+    >>> from collision.ccd import point_triangle_ccd
+    >>> tri = [np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])]
+    >>> hit, toi = point_triangle_ccd(np.array([[0.2, 0.2, 1.0]]), *tri, np.array([[0.2, 0.2, -1.0]]), *tri)
+    >>> bool(hit[0]), float(toi[0])
+    (True, 0.5)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from collision.roots import DEFAULT_MAX_DERIVATIVE, _init
+from kernels import ccd as _k
+
+__all__ = ["edge_edge_ccd", "edge_edge_roots", "point_triangle_ccd", "point_triangle_roots"]
+
+_DEVICE = "cpu"
+_VF_NAMES = ("p_t0", "t0_t0", "t1_t0", "t2_t0", "p_t1", "t0_t1", "t1_t1", "t2_t1")
+_EE_NAMES = ("ea0_t0", "ea1_t0", "eb0_t0", "eb1_t0", "ea0_t1", "ea1_t1", "eb0_t1", "eb1_t1")
+
+
+def _stack(args, names) -> np.ndarray:
+    """(N, 8, 3) float64 queries from eight (N, 3) arrays, with clear errors."""
+    if len(args) != 8:
+        raise TypeError(f"expected 8 position arrays ({', '.join(names)}), got {len(args)}")
+    arrays = []
+    n = None
+    for name, a in zip(names, args):
+        arr = np.asarray(a, dtype=np.float64) if not isinstance(a, np.ndarray) else a
+        if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+            raise ValueError(f"{name}: expected real positions, got dtype {arr.dtype}")
+        arr = np.asarray(arr, dtype=np.float64)
+        if arr.ndim == 1:
+            arr = arr[None, :]
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise ValueError(f"{name}: expected shape (N, 3), got {np.shape(a)}")
+        if n is None:
+            n = arr.shape[0]
+        elif arr.shape[0] != n:
+            raise ValueError(f"{name}: has {arr.shape[0]} rows, but {names[0]} has {n}")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            raise ValueError(f"{name}: positions must be finite; {name}[{r}, {c}]={float(arr[r, c])!r} ({int(bad.sum())} bad entries)")
+        arrays.append(arr)
+    return np.ascontiguousarray(np.stack(arrays, axis=1))
+
+
+def _run(kind: int, queries: np.ndarray, thickness: float):
+    t = float(thickness)
+    if not np.isfinite(t) or t < 0.0:
+        raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
+    _init()
+    n = queries.shape[0]
+    hit = np.zeros(n, dtype=np.int32)
+    toi = np.full(n, np.inf)
+    source = np.full(n, -1, dtype=np.int32)
+    if n:
+        wp.launch(
+            _k.ccd_kernel,
+            dim=n,
+            inputs=[kind, wp.array(queries, dtype=_k.mat83d, device=_DEVICE, copy=False), wp.float64(t)],
+            outputs=[
+                wp.array(hit, dtype=wp.int32, device=_DEVICE, copy=False),
+                wp.array(toi, dtype=wp.float64, device=_DEVICE, copy=False),
+                wp.array(source, dtype=wp.int32, device=_DEVICE, copy=False),
+            ],
+            device=_DEVICE,
+        )
+        wp.synchronize_device(_DEVICE)
+    return hit.astype(bool), toi, source
+
+
+def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0):
+    """Does the vertex hit the triangle during the step, and when first?
+
+    Args:
+        p_t0, t0_t0, t1_t0, t2_t0: vertex and triangle corners at the start [m], each (N, 3).
+        p_t1, t0_t1, t1_t1, t2_t1: the same at the end of the step [m].
+        thickness: minimum separation [m] (>= 0); contact when the distance reaches it.
+
+    Returns:
+        (hit: bool (N,), toi: float64 (N,) earliest time of impact in [0, 1], ``inf`` where no hit).
+
+    Raises:
+        ValueError: wrong shapes, mismatched lengths, non-finite positions or a bad thickness.
+    """
+    queries = _stack((p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1), _VF_NAMES)
+    hit, toi, _ = _run(0, queries, thickness)
+    return hit, toi
+
+
+def edge_edge_ccd(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1, thickness: float = 0.0):
+    """Do the two edges hit during the step, and when first?
+
+    Args:
+        ea0_t0, ea1_t0, eb0_t0, eb1_t0: endpoints of edges a and b at the start [m], each (N, 3).
+        ea0_t1, ea1_t1, eb0_t1, eb1_t1: the same at the end of the step [m].
+        thickness: minimum separation [m] (>= 0).
+
+    Returns:
+        (hit: bool (N,), toi: float64 (N,) in [0, 1], ``inf`` where no hit).
+    """
+    queries = _stack((ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1), _EE_NAMES)
+    hit, toi, _ = _run(1, queries, thickness)
+    return hit, toi
+
+
+def _roots(kind: int, queries: np.ndarray, max_derivative: float):
+    _init()
+    hit, toi, source = _run(kind, queries, 0.0)
+    n = queries.shape[0]
+    roots = np.zeros((n, 6))
+    out_toi = np.zeros(n)
+    if n:
+        wp.launch(
+            _k.ccd_time_of_impact_kernel,
+            dim=n,
+            inputs=[
+                wp.array(queries, dtype=_k.mat83d, device=_DEVICE, copy=False),
+                wp.array(source, dtype=wp.int32, device=_DEVICE, copy=False),
+                wp.array(np.where(hit, toi, np.inf), dtype=wp.float64, device=_DEVICE),
+                wp.float64(max_derivative),
+            ],
+            outputs=[
+                wp.array(out_toi, dtype=wp.float64, device=_DEVICE, copy=False),
+                wp.array(roots, dtype=_k.vec6d, device=_DEVICE, copy=False),
+            ],
+            device=_DEVICE,
+        )
+        wp.synchronize_device(_DEVICE)
+    return roots.reshape(n, 6).view(np.complex128)
+
+
+def point_triangle_roots(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+    """All three (complex) roots of each query's coplanarity cubic, slots (t-, tM, t+).
+
+    The "lifted" event: when the vertex misses, the roots it would need are complex, and an
+    optimiser can aim at them (their derivatives come from :mod:`kernels.roots`).
+    """
+    queries = _stack((p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1), _VF_NAMES)
+    return _roots(0, queries, max_derivative)
+
+
+def edge_edge_roots(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+    """All three (complex) roots of each edge-edge query's coplanarity cubic."""
+    queries = _stack((ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1), _EE_NAMES)
+    return _roots(1, queries, max_derivative)

@@ -1,0 +1,298 @@
+"""Narrow-phase continuous collision detection for vertex-triangle and edge-edge pairs.
+
+A query holds eight points as the rows of a (8, 3) matrix: rows 0-3 at the start of the step,
+rows 4-7 at its end, in ipctk's order (vertex-face: ``p, t0, t1, t2``; edge-edge:
+``ea0, ea1, eb0, eb1``). Candidate contact times are
+
+* ``t = 0`` (contact at the start),
+* the roots of the coplanarity cubic (:func:`kernels.ccd_common.coplanarity_cubic`), real or
+  complex with an imaginary part within the root's time uncertainty (a grazing contact is a
+  double root, which rounding may turn into a complex pair), with real part in ``[0, 1]`` up to
+  that uncertainty,
+* when the four points stay coplanar for the whole step (cubic identically zero up to rounding):
+  the times a vertex becomes collinear with an edge of the other primitive (sliding in-plane
+  motion, collinear overlap),
+
+and the query hits at the earliest candidate where the exact distance of the primitives is at
+most ``thickness + tolerance``; the tolerance is the distance the primitives can move relative
+to each other within the candidate's time uncertainty plus the rounding of the distance itself.
+
+With ``thickness > 0`` the contact need not be coplanar: conservative advancement (steps of
+``0.9 (distance - thickness) / relative speed bound``) is used instead.
+
+The time of impact is differentiable: :func:`ccd_time_of_impact_kernel` recomputes it from the
+positions through the cubic coefficients and :func:`kernels.roots.cubic_roots` (whose adjoint is
+the paper's mollified implicit derivative), so a ``wp.Tape`` over it yields bounded gradients.
+"""
+
+import warp as wp
+
+from kernels.ccd_common import (
+    CCD_T_MAX,
+    COEFFICIENT_ERROR_FACTOR,
+    COPLANAR_RELATIVE,
+    DISTANCE_ERROR_FACTOR,
+    UNIT_ROUNDOFF,
+    collinearity_quadratics,
+    coplanarity_cubic,
+    lerp3,
+    max_abs_vec3,
+    root_time_uncertainty,
+)
+from kernels.edge_edge import segment_segment_distance
+from kernels.point_triangle import point_triangle_distance
+from kernels.roots import cubic_roots, cubic_solve, quadratic_solve, vec6d
+
+mat83d = wp.types.matrix(shape=(8, 3), dtype=wp.float64)
+
+VERTEX_FACE = wp.constant(0)
+EDGE_EDGE = wp.constant(1)
+
+# Where the reported time of impact came from (for the differentiable recomputation).
+SOURCE_NONE = wp.constant(-1)
+SOURCE_START = wp.constant(0)  # t = 0
+SOURCE_CUBIC = wp.constant(1)  # 1 + slot of the coplanarity cubic (1, 2, 3)
+SOURCE_COLLINEAR = wp.constant(4)  # a vertex-edge collinearity root (coplanar step)
+SOURCE_ADVANCE = wp.constant(5)  # conservative advancement (thickness > 0)
+
+# Conservative advancement: at most this many steps; if the distance is still above the
+# thickness after them, the query is reported as a hit at the current time (conservative).
+ADVANCE_MAX_STEPS = wp.constant(2000)
+
+
+@wp.func
+def row(m: mat83d, i: int) -> wp.vec3d:
+    return wp.vec3d(m[i, 0], m[i, 1], m[i, 2])
+
+
+@wp.func
+def distance_at(kind: int, m: mat83d, t: wp.float64) -> wp.float64:
+    """Distance of the two primitives at time t."""
+    y0 = lerp3(row(m, 0), row(m, 4), t)
+    y1 = lerp3(row(m, 1), row(m, 5), t)
+    y2 = lerp3(row(m, 2), row(m, 6), t)
+    y3 = lerp3(row(m, 3), row(m, 7), t)
+    if kind == VERTEX_FACE:
+        return point_triangle_distance(y0, y1, y2, y3)
+    return segment_segment_distance(y0, y1, y2, y3)
+
+
+@wp.func
+def relative_motion_bound(kind: int, m: mat83d) -> wp.float64:
+    """Largest displacement over the step of a point of one primitive relative to a point of the
+    other (the closest points are convex combinations of the vertices): bounds how fast their
+    distance can change per unit of t."""
+    v = wp.float64(0.0)
+    n_first = 1
+    if kind == EDGE_EDGE:
+        n_first = 2
+    for i in range(n_first):
+        di = row(m, i + 4) - row(m, i)
+        for j in range(n_first, 4):
+            dj = row(m, j + 4) - row(m, j)
+            v = wp.max(v, wp.length(dj - di))
+    return v
+
+
+@wp.func
+def relative_extent(m: mat83d) -> wp.float64:
+    """Largest coordinate of the points relative to point 0, at the start or the end."""
+    s = wp.float64(0.0)
+    for k in range(1, 4):
+        s = wp.max(s, max_abs_vec3(row(m, k) - row(m, 0)))
+        s = wp.max(s, max_abs_vec3(row(m, k + 4) - row(m, 4)))
+    return s
+
+
+@wp.func
+def collinear_pair(kind: int, combo: int) -> wp.vec3i:
+    """(vertex, edge start, edge end) of the vertex-edge combination ``combo`` (-1 when unused)."""
+    if kind == VERTEX_FACE:
+        if combo == 0:
+            return wp.vec3i(0, 1, 2)
+        if combo == 1:
+            return wp.vec3i(0, 2, 3)
+        if combo == 2:
+            return wp.vec3i(0, 3, 1)
+        return wp.vec3i(-1, -1, -1)
+    if combo == 0:
+        return wp.vec3i(0, 2, 3)
+    if combo == 1:
+        return wp.vec3i(1, 2, 3)
+    if combo == 2:
+        return wp.vec3i(2, 0, 1)
+    return wp.vec3i(3, 0, 1)
+
+
+@wp.func
+def advance(kind: int, m: mat83d, thickness: wp.float64, tolerance: wp.float64, speed: wp.float64) -> wp.float64:
+    """Conservative advancement: the first t in [0, 1] with distance <= thickness + tolerance,
+    or 2 if none. Each step is 0.9 of the time the primitives need to close the gap at the
+    bound ``speed`` on their relative motion, so the contact is never stepped over."""
+    t = wp.float64(0.0)
+    result = wp.float64(2.0)
+    steps = int(0)
+    while steps < ADVANCE_MAX_STEPS:
+        steps = steps + 1
+        gap = distance_at(kind, m, t) - thickness
+        if gap <= tolerance:
+            result = t
+            break
+        if speed <= wp.float64(0.0):
+            break
+        if t >= wp.float64(1.0):
+            break
+        step = wp.float64(0.9) * gap / speed
+        t = wp.min(t + step, wp.float64(1.0))
+    if steps >= ADVANCE_MAX_STEPS and result > wp.float64(1.0):
+        result = t  # not resolved within the step budget: report the contact conservatively
+    return result
+
+
+@wp.func
+def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
+    """Earliest contact of one query.
+
+    Returns:
+        vec3d(hit (1 or 0), time of impact (inf when no hit), source code (SOURCE_*, with the
+        cubic slot added for SOURCE_CUBIC)).
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    inf = wp.float64(1.0e308) * wp.float64(10.0)
+    speed = relative_motion_bound(kind, m)
+    extent = relative_extent(m) + speed
+    # rounding of a distance computed from coordinates of size `extent`
+    tol_distance = DISTANCE_ERROR_FACTOR * UNIT_ROUNDOFF * extent
+    best = inf
+    source = wp.float64(-1.0)
+
+    if thickness > zero:
+        t_hit = advance(kind, m, thickness, tol_distance, speed)
+        if t_hit <= one:
+            return wp.vec3d(one, t_hit, wp.float64(5.0))
+        return wp.vec3d(zero, inf, wp.float64(-1.0))
+
+    if distance_at(kind, m, zero) <= tol_distance:
+        return wp.vec3d(one, zero, zero)
+
+    coefficients = coplanarity_cubic(
+        row(m, 0), row(m, 1), row(m, 2), row(m, 3), row(m, 4), row(m, 5), row(m, 6), row(m, 7)
+    )
+    # each coefficient sums a few triple products of vectors no longer than sqrt(3) * extent
+    magnitude = wp.float64(16.0) * extent * extent * extent
+    coefficient_error = COEFFICIENT_ERROR_FACTOR * UNIT_ROUNDOFF * magnitude
+    largest = wp.max(wp.max(wp.abs(coefficients[0]), wp.abs(coefficients[1])), wp.max(wp.abs(coefficients[2]), wp.abs(coefficients[3])))
+    if largest > COPLANAR_RELATIVE * magnitude:
+        roots = cubic_solve(coefficients, CCD_T_MAX)
+        for slot in range(3):
+            re = roots[slot + slot]
+            im = roots[slot + slot + 1]
+            dt = root_time_uncertainty(coefficients, re, coefficient_error)
+            if wp.abs(im) <= dt and re >= -dt and re <= one + dt:
+                t = wp.clamp(re, zero, one)
+                if t < best:
+                    if distance_at(kind, m, t) <= tol_distance + speed * (dt + wp.abs(im)):
+                        best = t
+                        source = wp.float64(1.0) + wp.float64(slot)
+    else:
+        # coplanar for the whole step: first contact is a vertex meeting an edge
+        for combo in range(4):
+            trio = collinear_pair(kind, combo)
+            if trio[0] >= 0:
+                quads = collinearity_quadratics(
+                    row(m, trio[0]), row(m, trio[1]), row(m, trio[2]),
+                    row(m, trio[0] + 4), row(m, trio[1] + 4), row(m, trio[2] + 4),
+                )
+                n_significant = int(0)
+                for comp in range(3):
+                    qa = quads[comp, 0]
+                    qb = quads[comp, 1]
+                    qc = quads[comp, 2]
+                    if wp.max(wp.abs(qa), wp.max(wp.abs(qb), wp.abs(qc))) > COPLANAR_RELATIVE * extent * extent:
+                        n_significant = n_significant + 1
+                        pair_roots, _sa = quadratic_solve(qa, qb, qc, CCD_T_MAX)
+                        cubic_view = wp.vec4d(zero, qa, qb, qc)
+                        err = COEFFICIENT_ERROR_FACTOR * UNIT_ROUNDOFF * wp.float64(4.0) * extent * extent
+                        for r in range(2):
+                            re = pair_roots[r + r]
+                            im = pair_roots[r + r + 1]
+                            dt = root_time_uncertainty(cubic_view, re, err)
+                            if wp.abs(im) <= dt and re >= -dt and re <= one + dt:
+                                t = wp.clamp(re, zero, one)
+                                if t < best:
+                                    if distance_at(kind, m, t) <= tol_distance + speed * (dt + wp.abs(im)):
+                                        best = t
+                                        source = wp.float64(4.0)
+                if n_significant == 0:
+                    # vertex and edge stay collinear: the vertex enters the segment when it meets
+                    # an endpoint, p(t) = e(t), linear in each coordinate
+                    for end in range(2):
+                        e_idx = trio[1 + end]
+                        g0 = row(m, trio[0]) - row(m, e_idx)
+                        g1 = (row(m, trio[0] + 4) - row(m, e_idx + 4)) - g0
+                        for comp in range(3):
+                            if wp.abs(g1[comp]) > COPLANAR_RELATIVE * extent:
+                                t_lin = -g0[comp] / g1[comp]
+                                dt_lin = DISTANCE_ERROR_FACTOR * UNIT_ROUNDOFF * extent / wp.abs(g1[comp])
+                                if t_lin >= -dt_lin and t_lin <= one + dt_lin:
+                                    t = wp.clamp(t_lin, zero, one)
+                                    if t < best:
+                                        if distance_at(kind, m, t) <= tol_distance + speed * dt_lin:
+                                            best = t
+                                            source = wp.float64(4.0)
+        if distance_at(kind, m, one) <= tol_distance and one < best:
+            best = one
+            source = wp.float64(4.0)
+    if best <= one:
+        return wp.vec3d(one, best, source)
+    return wp.vec3d(zero, inf, wp.float64(-1.0))
+
+
+@wp.kernel
+def ccd_kernel(
+    kind: int,
+    queries: wp.array(dtype=mat83d),
+    thickness: wp.float64,
+    hit: wp.array(dtype=wp.int32),
+    time_of_impact: wp.array(dtype=wp.float64),
+    source: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    r = ccd_query(kind, queries[i], thickness)
+    hit[i] = wp.int32(r[0])
+    time_of_impact[i] = r[1]
+    source[i] = wp.int32(r[2])
+
+
+@wp.func
+def query_coefficients(m: mat83d) -> wp.vec4d:
+    return coplanarity_cubic(row(m, 0), row(m, 1), row(m, 2), row(m, 3), row(m, 4), row(m, 5), row(m, 6), row(m, 7))
+
+
+@wp.kernel
+def ccd_time_of_impact_kernel(
+    queries: wp.array(dtype=mat83d),
+    source: wp.array(dtype=wp.int32),
+    detected_time: wp.array(dtype=wp.float64),
+    max_derivative: wp.float64,
+    time_of_impact: wp.array(dtype=wp.float64),
+    roots: wp.array(dtype=vec6d),
+):
+    """Differentiable recomputation of the time of impact and the three (lifted) roots.
+
+    For a hit found at a root of the coplanarity cubic (source 1-3) the time of impact is that
+    root's real part, recomputed from the positions through the cubic's coefficients and
+    :func:`kernels.roots.cubic_roots`; its adjoint is the mollified implicit derivative, bounded
+    by ``max_derivative``. Other sources (t = 0, collinearity in a coplanar step, conservative
+    advancement) and misses pass ``detected_time`` through with no time derivative.
+    ``roots`` holds all three roots for every query (the lifted event an optimiser can aim at).
+    """
+    i = wp.tid()
+    r = cubic_roots(query_coefficients(queries[i]), CCD_T_MAX, max_derivative)
+    roots[i] = r
+    s = source[i]
+    if s >= 1 and s <= 3:
+        time_of_impact[i] = wp.clamp(r[(s - 1) + (s - 1)], wp.float64(0.0), wp.float64(1.0))
+    else:
+        time_of_impact[i] = detected_time[i]

@@ -1,0 +1,224 @@
+"""Narrow-phase CCD: hand-made cases, malformed input, and the differentiable time of impact.
+
+Ground truth here is closed-form geometry (dyadic coordinates, exact answers) and mpmath at 50
+digits for the time of impact and its derivative; the sample-query benchmark and the generated
+exact-touch set have their own test files.
+"""
+
+import mpmath as mp
+import numpy as np
+import pytest
+import warp as wp
+
+from collision.ccd import edge_edge_ccd, edge_edge_roots, point_triangle_ccd, point_triangle_roots
+from kernels import ccd as kccd
+
+wp.init()
+
+TRI = (np.array([[0.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+
+
+def vf(p0, p1, tri0=TRI, tri1=TRI, **kw):
+    return point_triangle_ccd(np.atleast_2d(p0), *tri0, np.atleast_2d(p1), *tri1, **kw)
+
+
+def test_vertex_through_triangle_interior_edge_corner_and_miss():
+    cases = [
+        ([0.25, 0.25, 1.0], [0.25, 0.25, -1.0], True, 0.5),  # interior
+        ([0.5, 0.0, 1.0], [0.5, 0.0, -3.0], True, 0.25),  # on an edge
+        ([0.0, 0.0, 0.5], [0.0, 0.0, -0.5], True, 0.5),  # through a corner
+        ([1.0, 1.0, 1.0], [1.0, 1.0, -1.0], False, np.inf),  # misses beside the hypotenuse
+        ([0.25, 0.25, 1.0], [0.25, 0.25, 0.5], False, np.inf),  # stops short
+        ([0.25, 0.25, 1.0], [0.25, 0.25, 0.0], True, 1.0),  # touches exactly at t = 1
+        ([0.25, 0.25, 0.0], [0.25, 0.25, 1.0], True, 0.0),  # touching at t = 0
+    ]
+    for p0, p1, want_hit, want_toi in cases:
+        hit, toi = vf(p0, p1)
+        assert hit[0] == want_hit, (p0, p1)
+        assert toi[0] == want_toi, (p0, p1, toi)
+
+
+def test_sliding_in_plane_vertex_enters_triangle():
+    # coplanar for the whole step: the vertex slides in the triangle's plane across the edge x = 0
+    hit, toi = vf([-1.0, 0.25, 0.0], [1.0, 0.25, 0.0])
+    assert hit[0] and toi[0] == 0.5
+    hit, toi = vf([-1.0, 2.0, 0.0], [1.0, 2.0, 0.0])  # slides past, outside
+    assert not hit[0]
+
+
+def test_degenerate_triangle_and_zero_length_edges():
+    flat = (np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[2.0, 0, 0]]))  # zero area
+    hit, toi = vf([0.5, 1.0, 0.0], [0.5, -1.0, 0.0], flat, flat)
+    assert hit[0] and toi[0] == 0.5
+    point = [np.array([[0.5, 0.0, 1.0]]), np.array([[0.5, 0.0, 1.0]])]  # zero-length edge a
+    seg = [np.array([[0.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]])]
+    hit, toi = edge_edge_ccd(*point, *seg, np.array([[0.5, 0.0, -1.0]]), np.array([[0.5, 0.0, -1.0]]), *seg)
+    assert hit[0] and toi[0] == 0.5
+
+
+def test_edge_edge_crossing_parallel_and_collinear():
+    a0, a1 = np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 1.0]])
+    b0, b1 = np.array([[0.5, -1.0, 0.0]]), np.array([[0.5, 1.0, 0.0]])
+    down = np.array([[0.0, 0.0, -2.0]])
+    hit, toi = edge_edge_ccd(a0, a1, b0, b1, a0 + down, a1 + down, b0, b1)
+    assert hit[0] and toi[0] == 0.5
+    # parallel edges approaching each other
+    c0, c1 = np.array([[0.0, 1.0, 1.0]]), np.array([[1.0, 1.0, 1.0]])
+    hit, toi = edge_edge_ccd(a0, a1, c0, c1, a0, a1, c0 - [[0, 1, 0]], c1 - [[0, 1, 0]])
+    assert hit[0] and toi[0] == 1.0
+    # collinear, sliding into overlap: edge b on the same line approaches edge a
+    d0, d1 = np.array([[2.0, 0.0, 1.0]]), np.array([[3.0, 0.0, 1.0]])
+    hit, toi = edge_edge_ccd(a0, a1, d0, d1, a0, a1, d0 - [[2, 0, 0]], d1 - [[2, 0, 0]])
+    assert hit[0] and toi[0] == 0.5
+    # skew edges that pass each other at distance 1
+    hit, _ = edge_edge_ccd(a0, a1, b0 + [[0, 0, 3]], b1 + [[0, 0, 3]], a0, a1, b0 + [[0, 0, 2]], b1 + [[0, 0, 2]])
+    assert not hit[0]
+
+
+def test_thickness_reports_the_first_time_within_reach():
+    hit, toi = vf([0.25, 0.25, 1.0], [0.25, 0.25, 0.5], thickness=0.75)
+    assert hit[0] and toi[0] == pytest.approx(0.5, abs=1e-9)
+    assert toi[0] <= 0.5 + 1e-12  # conservative: never after the exact time
+    hit, _ = vf([0.25, 0.25, 1.0], [0.25, 0.25, 0.5], thickness=0.25)
+    assert not hit[0]
+
+
+def test_scaled_and_translated_scenes_give_the_same_answer():
+    rng = np.random.default_rng(0)
+    p0 = rng.uniform(-1, 1, (200, 3))
+    p1 = rng.uniform(-1, 1, (200, 3))
+    t0 = [rng.uniform(-1, 1, (200, 3)) for _ in range(3)]
+    t1 = [x + rng.uniform(-0.5, 0.5, (200, 3)) for x in t0]
+    hit, toi = point_triangle_ccd(p0, *t0, p1, *t1)
+    for scale in (2.0**-20, 2.0**20):
+        h2, toi2 = point_triangle_ccd(p0 * scale, *[x * scale for x in t0], p1 * scale, *[x * scale for x in t1])
+        np.testing.assert_array_equal(hit, h2)
+        np.testing.assert_array_equal(toi, toi2)
+    shift = 1024.0  # dyadic offset: positions stay exact, relative vectors are unchanged
+    h3, toi3 = point_triangle_ccd(p0 + shift, *[x + shift for x in t0], p1 + shift, *[x + shift for x in t1])
+    np.testing.assert_array_equal(hit, h3)
+    np.testing.assert_allclose(toi[hit], toi3[hit], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ((np.zeros((2, 3)),) * 7 + (np.zeros((3, 3)),), "t2_t1: has 3 rows"),
+        ((np.zeros((2, 2)),) + (np.zeros((2, 3)),) * 7, "p_t0: expected shape (N, 3)"),
+        ((np.array([[np.nan, 0, 0]]),) + (np.zeros((1, 3)),) * 7, "p_t0: positions must be finite"),
+        ((np.zeros((1, 3)),) * 4 + (np.array([[0, np.inf, 0]]),) + (np.zeros((1, 3)),) * 3, "p_t1[0, 1]=inf"),
+    ],
+)
+def test_malformed_input_is_a_clear_error(args, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[").replace("]", r"\]")):
+        point_triangle_ccd(*args)
+    with pytest.raises(ValueError, match="thickness"):
+        point_triangle_ccd(*(np.zeros((1, 3)),) * 8, thickness=-1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# differentiable time of impact
+# ------------------------------------------------------------------------------------------
+
+
+def _mp_toi(x, near):
+    """Root of the coplanarity cubic of the (8, 3) mp matrix ``x`` nearest ``near`` (50 digits)."""
+    d = [[x[k][c] - x[0][c] for c in range(3)] for k in (1, 2, 3)]
+    e = [[(x[k + 4][c] - x[4][c]) - d[k - 1][c] for c in range(3)] for k in (1, 2, 3)]
+
+    def f(t):
+        v = [[d[k][c] + t * e[k][c] for c in range(3)] for k in range(3)]
+        cr = [v[0][1] * v[1][2] - v[0][2] * v[1][1], v[0][2] * v[1][0] - v[0][0] * v[1][2], v[0][0] * v[1][1] - v[0][1] * v[1][0]]
+        return sum(cr[c] * v[2][c] for c in range(3))
+
+    return mp.findroot(f, mp.mpf(near), tol=mp.mpf(10) ** -45)
+
+
+def _tape_toi_gradient(queries, source, toi, max_derivative=1000.0):
+    q = wp.array(queries, dtype=kccd.mat83d, requires_grad=True)
+    s = wp.array(source, dtype=wp.int32)
+    detected = wp.array(toi, dtype=wp.float64)
+    out = wp.zeros(len(queries), dtype=wp.float64, requires_grad=True)
+    roots = wp.zeros(len(queries), dtype=kccd.vec6d, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(kccd.ccd_time_of_impact_kernel, dim=len(queries), inputs=[q, s, detected, wp.float64(max_derivative)], outputs=[out, roots])
+    tape.backward(grads={out: wp.ones(len(queries), dtype=wp.float64)})
+    return out.numpy(), q.grad.numpy()
+
+
+def _transversal_queries(n, seed):
+    rng = np.random.default_rng(seed)
+    qs = []
+    while len(qs) < n:
+        tri0 = rng.uniform(-1, 1, (3, 3))
+        tri1 = tri0 + rng.uniform(-0.3, 0.3, (3, 3))
+        w = rng.dirichlet([2, 2, 2])
+        t_hit = rng.uniform(0.2, 0.8)
+        hit_point = w @ (tri0 + t_hit * (tri1 - tri0))
+        direction = rng.normal(size=3)
+        p0 = hit_point - t_hit * direction
+        p1 = p0 + direction
+        qs.append(np.vstack([p0, tri0, p1, tri1]))
+    return np.array(qs)
+
+
+def test_time_of_impact_matches_exact_root_and_its_gradient_matches_finite_differences():
+    from collision.ccd import _run
+
+    queries = _transversal_queries(4, seed=1)
+    hit, toi, source = _run(0, queries, 0.0)
+    assert hit.all() and np.all((source >= 1) & (source <= 3))
+    toi_tape, grad = _tape_toi_gradient(queries, source, toi)
+    np.testing.assert_array_equal(toi_tape, toi)
+    mp.mp.dps = 50
+    h = mp.mpf(10) ** -20
+    for i, x in enumerate(queries):
+        xm = [[mp.mpf(float(v)) for v in r] for r in x]
+        exact = _mp_toi(xm, toi[i])
+        assert abs(float(exact) - toi[i]) <= 1e-12 * max(1.0, abs(float(exact)))
+        for r in range(8):
+            for c in range(3):
+                xp = [row[:] for row in xm]
+                xn = [row[:] for row in xm]
+                xp[r][c] += h
+                xn[r][c] -= h
+                fd = (_mp_toi(xp, exact) - _mp_toi(xn, exact)) / (2 * h)
+                assert abs(grad[i, r, c] - float(fd)) <= 1e-7 * max(1.0, abs(float(fd))), (i, r, c, grad[i, r, c], float(fd))
+
+
+def _grazing_query(gap):
+    """Vertex p = (t, 1/4, 1/2 + gap - t) under a triangle whose corner B = (1, 0, 1 - 2t) tilts:
+    the coplanarity cubic is proportional to 2 (t - 1/2)^2 + gap, a double root at t = 1/2 for
+    gap = 0 (the vertex grazes the face at (1/2, 1/4, 0)), two real roots for gap < 0, none for
+    gap > 0."""
+    start = np.array([[0.0, 0.25, 0.5 + gap], [0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    end = np.array([[1.0, 0.25, -0.5 + gap], [0.0, 0.0, 0.0], [1.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    return np.vstack([start, end])
+
+
+def test_grazing_contact_is_detected_and_its_gradient_is_finite_and_bounded():
+    from collision.ccd import _run
+
+    gaps = [0.0, -1e-12, -1e-8, -1e-4, 1e-4, 1e-2]
+    queries = np.array([_grazing_query(g) for g in gaps])
+    hit, toi, source = _run(0, queries, 0.0)
+    assert hit[:4].all(), "touching and crossing grazes are hits"
+    assert not hit[4:].any(), "clear misses (gap >= 1e-4) are not"
+    assert abs(toi[0] - 0.5) <= 1e-7  # double root: accuracy ~ sqrt(u)
+    assert abs(toi[3] - (0.5 - np.sqrt(0.5e-4))) <= 1e-12
+    toi_tape, grad = _tape_toi_gradient(queries, source, np.where(hit, toi, 1.0))
+    assert np.all(np.isfinite(grad)) and np.all(np.isfinite(toi_tape))
+    # dt/dx = (mollified dt/dcoef, |.| <= 5 M) x (dcoef/dx, O(1) here): bounded at the double root
+    assert np.abs(grad).max() <= 5 * 1000.0 * 10.0
+    # away from grazing the derivative is the exact one; at the double root it is the clamp
+    assert np.abs(grad[0]).max() > np.abs(grad[3]).max()
+
+
+def test_lifted_roots_of_a_miss_are_complex_and_differentiable():
+    # vertex passes beside the triangle: no real root in [0, 1] with the point inside
+    roots = point_triangle_roots(np.array([[2.0, 2.0, 1.0]]), *TRI, np.array([[2.0, 2.0, -1.0]]), *TRI)
+    assert roots.shape == (1, 3)
+    assert np.all(np.isfinite(roots.real)) and np.all(np.isfinite(roots.imag))
+    r = edge_edge_roots(*([np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 1]]), np.array([[0.5, -1, 0]]), np.array([[0.5, 1, 0]])] * 2))
+    assert r.shape == (1, 3)
