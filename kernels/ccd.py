@@ -39,8 +39,8 @@ from kernels.ccd_common import (
     max_abs_vec3,
     root_time_uncertainty,
 )
-from kernels.edge_edge import segment_segment_distance
-from kernels.point_triangle import point_triangle_distance
+from kernels.edge_edge import segment_segment_offset
+from kernels.point_triangle import point_triangle_offset
 from kernels.roots import cubic_roots, cubic_solve, quadratic_solve, vec6d
 
 mat83d = wp.types.matrix(shape=(8, 3), dtype=wp.float64)
@@ -66,15 +66,37 @@ def row(m: mat83d, i: int) -> wp.vec3d:
 
 
 @wp.func
-def distance_at(kind: int, m: mat83d, t: wp.float64) -> wp.float64:
-    """Distance of the two primitives at time t."""
+def offset_at(kind: int, m: mat83d, t: wp.float64) -> wp.vec3d:
+    """Offset between the closest points of the two primitives at time t."""
     y0 = lerp3(row(m, 0), row(m, 4), t)
     y1 = lerp3(row(m, 1), row(m, 5), t)
     y2 = lerp3(row(m, 2), row(m, 6), t)
     y3 = lerp3(row(m, 3), row(m, 7), t)
     if kind == VERTEX_FACE:
-        return point_triangle_distance(y0, y1, y2, y3)
-    return segment_segment_distance(y0, y1, y2, y3)
+        return point_triangle_offset(y0, y1, y2, y3)
+    return segment_segment_offset(y0, y1, y2, y3)
+
+
+@wp.func
+def distance_at(kind: int, m: mat83d, t: wp.float64) -> wp.float64:
+    """Distance of the two primitives at time t."""
+    return wp.length(offset_at(kind, m, t))
+
+
+@wp.func
+def axis_extents(m: mat83d) -> wp.vec3d:
+    """Per axis: the largest component of the edge vectors from point 0 (start and end) and of
+    their motions. Every term of the coplanarity cubic's coefficients is a product of one x, one
+    y and one z component of these, which bounds the coefficients' size and rounding per axis
+    (a step that is flat in x, say, has tiny x components and accurately known coefficients)."""
+    ext = wp.vec3d()
+    for k in range(1, 4):
+        d = row(m, k) - row(m, 0)
+        d1 = row(m, k + 4) - row(m, 4)
+        e = d1 - d
+        for c in range(3):
+            ext[c] = wp.max(ext[c], wp.max(wp.abs(d[c]), wp.max(wp.abs(d1[c]), wp.abs(e[c]))))
+    return ext
 
 
 @wp.func
@@ -179,8 +201,9 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
     coefficients = coplanarity_cubic(
         row(m, 0), row(m, 1), row(m, 2), row(m, 3), row(m, 4), row(m, 5), row(m, 6), row(m, 7)
     )
-    # each coefficient sums a few triple products of vectors no longer than sqrt(3) * extent
-    magnitude = wp.float64(16.0) * extent * extent * extent
+    # each coefficient sums at most 18 terms, each a product of one x, one y and one z component
+    ext = axis_extents(m)
+    magnitude = wp.float64(18.0) * ext[0] * ext[1] * ext[2]
     coefficient_error = COEFFICIENT_ERROR_FACTOR * UNIT_ROUNDOFF * magnitude
     largest = wp.max(wp.max(wp.abs(coefficients[0]), wp.abs(coefficients[1])), wp.max(wp.abs(coefficients[2]), wp.abs(coefficients[3])))
     if largest > COPLANAR_RELATIVE * magnitude:

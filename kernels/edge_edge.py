@@ -2,20 +2,21 @@
 
 import warp as wp
 
-from kernels.ccd_common import point_segment_distance
+from kernels.ccd_common import nearer, point_segment_offset
 
 
 @wp.func
-def segment_segment_distance(p1: wp.vec3d, q1: wp.vec3d, p2: wp.vec3d, q2: wp.vec3d) -> wp.float64:
-    """Distance between closed segments p1q1 and p2q2 (zero-length and parallel included).
+def segment_segment_offset(p1: wp.vec3d, q1: wp.vec3d, p2: wp.vec3d, q2: wp.vec3d) -> wp.vec3d:
+    """Closest point of segment p1q1 minus closest point of segment p2q2 (closed segments;
+    zero-length and parallel included).
 
-    The minimum of the four endpoint-to-segment distances and, when the interior closest points
-    of the two supporting lines fall inside both segments, the line-line distance there.
+    The nearest of the four endpoint-to-segment offsets and, when the closest points of the two
+    supporting lines fall inside both segments, the line-line offset there.
     """
-    d = point_segment_distance(p1, p2, q2)
-    d = wp.min(d, point_segment_distance(q1, p2, q2))
-    d = wp.min(d, point_segment_distance(p2, p1, q1))
-    d = wp.min(d, point_segment_distance(q2, p1, q1))
+    d = point_segment_offset(p1, p2, q2)
+    d = nearer(d, point_segment_offset(q1, p2, q2))
+    d = nearer(d, -point_segment_offset(p2, p1, q1))
+    d = nearer(d, -point_segment_offset(q2, p1, q1))
     u = q1 - p1
     v = q2 - p2
     w = p1 - p2
@@ -29,5 +30,5 @@ def segment_segment_distance(p1: wp.vec3d, q1: wp.vec3d, p2: wp.vec3d, q2: wp.ve
         s = (b * e - c * dd) / den
         t = (a * e - b * dd) / den
         if s >= wp.float64(0.0) and s <= wp.float64(1.0) and t >= wp.float64(0.0) and t <= wp.float64(1.0):
-            d = wp.min(d, wp.length(w + s * u - t * v))
+            d = nearer(d, w + s * u - t * v)
     return d

@@ -1,0 +1,318 @@
+"""CCD accuracy and speed: our batched narrow phase against ipctk's Tight Inclusion CCD.
+
+    python benchmarks/ccd.py [--max-iterations 10000000] [--ipctk-sample N] [--repeats 3]
+                             [--generated] [--toi] [--mesh] [--peer-only]
+
+Queries: every sample query under the data root (tests/ccd_queries.py: the shared
+ccd-sample-queries, or $TUNNELSIM_CCD_QUERIES), vertex-face and edge-edge, against the data set's
+ground truth. FN = truth 1 reported as a miss, FP = truth 0 reported as a hit.
+
+Ours: ``collision.ccd.point_triangle_ccd`` / ``edge_edge_ccd`` on the whole (N, 3)-argument batch
+(best of --repeats after one warm-up call that compiles/loads the Warp kernels); time per query =
+batch time / N. ipctk: ``ipctk.tight_inclusion.point_triangle_ccd`` / ``edge_edge_ccd`` (the raw
+Tight Inclusion solver, tolerance 1e-6, max_iterations ipctk's default 1e7) called once per query
+from Python (benchmarks/ipctk_peer.py); its time per query includes the Python call overhead, as
+the batched call's does. Bar: ours >= 10x faster per query than ipctk.
+
+With the default 1e7 iterations the ipctk pass alone takes about 4 minutes (measured: 18.7 ms per
+vertex-face and 46.9 ms per edge-edge query; a few edge-edge unit tests run for seconds each);
+``--max-iterations 1000000`` is ~8x faster (2.3 / 5.2 ms) with the same FN/FP on these queries, ``--ipctk-sample N`` times ipctk on a random N per kind (FN/FP then
+over that sample only).
+
+--generated  also run the exact-by-construction touching queries and near misses
+             (tests/ccd_generated.py): FN / FP and |toi - exact|.
+--toi        time-of-impact error of both against the exact earliest contact (tests/exact_ccd.py)
+             on the sample queries whose truth is 1 (a few seconds of exact arithmetic).
+--mesh       the mesh-level comparison (cloth sheet dropped on a ground quad): ipctk's
+             compute_collision_free_stepsize; our side is still a placeholder.
+--peer-only  skip our CCD (to measure ipctk before collision.ccd exists); without it a missing
+             collision.ccd is an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+sys.path.insert(0, HERE)
+
+import ccd_queries  # noqa: E402
+import ipctk_peer  # noqa: E402
+
+SPEED_BAR = 10.0  # ours must be >= 10x faster per query than ipctk (milestone bar)
+KINDS = ("vertex-face", "edge-edge")
+
+
+def import_ours():
+    """(point_triangle_ccd, edge_edge_ccd) from collision.ccd, or exit with a clear message."""
+    try:
+        from collision.ccd import edge_edge_ccd, point_triangle_ccd
+    except ModuleNotFoundError as e:
+        if e.name in ("collision.ccd", "collision"):
+            raise SystemExit(
+                "benchmarks/ccd.py: collision/ccd.py does not exist yet (the batched narrow phase "
+                "point_triangle_ccd / edge_edge_ccd has not landed). Run with --peer-only to "
+                "measure ipctk alone."
+            ) from None
+        raise
+    except ImportError as e:
+        raise SystemExit(
+            f"benchmarks/ccd.py: collision.ccd does not provide point_triangle_ccd and edge_edge_ccd yet ({e})"
+        ) from None
+    return point_triangle_ccd, edge_edge_ccd
+
+
+def run_ours(fn, points, repeats):
+    """Batched call: (hit, toi, best seconds for the batch)."""
+    args = [np.ascontiguousarray(points[:, j, :]) for j in range(8)]
+    fn(*[a[: min(len(a), 16)] for a in args])  # warm-up (kernel compile / load)
+    best, out = float("inf"), None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn(*args)
+        best = min(best, time.perf_counter() - t0)
+    hit, toi = out
+    hit = np.asarray(hit, dtype=bool).reshape(-1)
+    toi = np.asarray(toi, dtype=np.float64).reshape(-1)
+    if hit.shape != (len(points),) or toi.shape != (len(points),):
+        raise SystemExit(f"collision.ccd returned shapes {hit.shape}, {toi.shape} for {len(points)} queries")
+    return hit, toi, best
+
+
+def fn_fp(hit, truth):
+    return int((truth & ~hit).sum()), int((~truth & hit).sum())
+
+
+def fmt_ms(s):
+    return f"{s * 1e3:9.4f}" if np.isfinite(s) else f"{'-':>9s}"
+
+
+def exact_tois(qs, idx):
+    """Exact earliest contact (float, correctly rounded) of queries idx (truth 1)."""
+    from exact_ccd import exact_ccd
+
+    out = np.full(len(idx), np.nan)
+    for k, i in enumerate(idx):
+        r = exact_ccd(qs.exact(int(i)), qs.kind)
+        out[k] = r.toi_float
+    return out
+
+
+def toi_report(name, toi, hit, ref):
+    """|toi - exact| over the true hits a method reports; 'late' = toi after the exact earliest
+    contact (a conservative CCD never is; 1e-12 allows for the float rounding of the exact toi)."""
+    m = hit & np.isfinite(ref)
+    if not m.any():
+        return f"{name}: no common hits"
+    err = toi[m] - ref[m]
+    late = int((err > 1e-12).sum())
+    early = int((err < -1e-3).sum())
+    return (
+        f"{name}: max |toi - exact| {np.abs(err).max():.3g}, median {np.median(np.abs(err)):.3g}; "
+        f"late by > 1e-12: {late} (max {max(err.max(), 0.0):.3g}); early by > 1e-3: {early} (of {int(m.sum())})"
+    )
+
+
+def sample_queries(args, ours):
+    print(f"Sample queries from {ccd_queries.queries_root()}")
+    for kind in KINDS:
+        rep = ccd_queries.representability(kind)
+        print(
+            f"  {kind}: {rep['queries']} queries, {rep['inexact_coordinates']} of {rep['coordinates']} "
+            "coordinates not exactly representable in float64"
+        )
+    print(
+        f"ipctk {ipctk_peer.ipctk.__name__} tight_inclusion: tolerance {ipctk_peer.TOLERANCE:g}, "
+        f"max_iterations {args.max_iterations:g}; ours best of {args.repeats} batched calls\n"
+    )
+    head = (
+        f"{'kind':12s} {'subset':9s} {'N':>5s} {'pos':>4s} | {'ours FN':>7s} {'FP':>4s} {'ms/query':>9s} | "
+        f"{'ipctk FN':>8s} {'FP':>4s} {'ms/query':>9s} | {'speedup':>8s}"
+    )
+    print(head)
+    print("-" * len(head))
+    rng = np.random.default_rng(args.seed)
+    verdicts = []
+    for kind in KINDS:
+        qs = ccd_queries.load_queries(kind)
+        pts, truth = qs.points, qs.truth
+        scenes = qs.scenes()
+        n = len(truth)
+        if ours is not None:
+            o_hit, o_toi, o_s = run_ours(ours[0] if kind == "vertex-face" else ours[1], pts, args.repeats)
+        sel = np.arange(n)
+        if args.ipctk_sample and args.ipctk_sample < n:
+            sel = np.sort(rng.choice(n, args.ipctk_sample, replace=False))
+        i_hit = np.zeros(n, dtype=bool)
+        i_toi = np.full(n, np.nan)
+        i_sec = np.full(n, np.nan)
+        if not args.skip_ipctk:
+            r = ipctk_peer.tight_inclusion_queries(pts[sel], kind, max_iterations=args.max_iterations)
+            i_hit[sel], i_toi[sel], i_sec[sel] = r.hit, r.toi, r.seconds
+        timed = np.zeros(n, dtype=bool)
+        timed[sel] = not args.skip_ipctk
+        for subset, mask in (
+            ("unit", scenes == "unit-tests"),
+            ("erleben", scenes != "unit-tests"),
+            ("all", np.ones(n, dtype=bool)),
+        ):
+            if not mask.any():
+                continue
+            cells = f"{kind:12s} {subset:9s} {int(mask.sum()):5d} {int(truth[mask].sum()):4d} |"
+            if ours is not None:
+                fn_, fp_ = fn_fp(o_hit[mask], truth[mask])
+                cells += f" {fn_:7d} {fp_:4d} {fmt_ms(o_s / n)} |"  # batch time shared over the batch
+            else:
+                cells += f" {'-':>7s} {'-':>4s} {'-':>9s} |"
+            im = mask & timed
+            if im.any():
+                fn_, fp_ = fn_fp(i_hit[im], truth[im])
+                i_ms = float(np.nanmean(i_sec[im]))
+                cells += f" {fn_:8d} {fp_:4d} {fmt_ms(i_ms)} |"
+            else:
+                i_ms = float("nan")
+                cells += f" {'-':>8s} {'-':>4s} {'-':>9s} |"
+            if ours is not None and np.isfinite(i_ms):
+                cells += f" {i_ms / (o_s / n):7.1f}x"
+            print(cells)
+        if ours is not None and timed.any():
+            ratio = float(np.nanmean(i_sec[timed])) / (o_s / n)
+            verdicts.append((kind, ratio))
+        if args.toi:
+            idx = np.flatnonzero(truth)
+            ref = exact_tois(qs, idx)
+            if ours is not None:
+                print("    " + toi_report("ours ", o_toi[idx], o_hit[idx], ref))
+            if timed[idx].any():
+                j = timed[idx]
+                print("    " + toi_report("ipctk", i_toi[idx][j], i_hit[idx][j], ref[j]))
+    if verdicts:
+        print()
+        for kind, ratio in verdicts:
+            ok = ratio >= SPEED_BAR
+            print(f"speed bar {kind}: ours {ratio:.1f}x faster per query than ipctk (bar {SPEED_BAR:g}x: {'met' if ok else 'NOT met'})")
+
+
+def generated_queries(args, ours):
+    import ccd_generated
+
+    print("\nGenerated queries (exact by construction, tests/ccd_generated.py): touching + near misses (gap 2^-30)")
+    touch = ccd_generated.generate_queries(n_per_case=args.n_generated, seed=args.seed)
+    miss = ccd_generated.generate_near_misses(n_per_case=max(1, args.n_generated - 1), seed=args.seed + 1)
+    head = f"{'kind':12s} {'set':6s} {'N':>5s} | {'ours FN/FP':>10s} {'max|dtoi|':>10s} | {'ipctk FN/FP':>11s} {'max|dtoi|':>10s}"
+    print(head)
+    print("-" * len(head))
+    worst = {}
+    for kind in KINDS:
+        for name, g in (("touch", touch), ("miss", miss)):
+            pts, tois, labels = g.select(kind)
+            truth = np.array([t is not None for t in tois])
+            ref = np.array([float(t) if t is not None else np.nan for t in tois])
+            cells = f"{kind:12s} {name:6s} {len(pts):5d} |"
+            results = []
+            if ours is not None:
+                h, t, _ = run_ours(ours[0] if kind == "vertex-face" else ours[1], pts, 1)
+                results.append(("ours", h, t))
+            else:
+                cells += f" {'-':>10s} {'-':>10s} |"
+            if not args.skip_ipctk:
+                r = ipctk_peer.tight_inclusion_queries(pts, kind, max_iterations=args.max_iterations)
+                results.append(("ipctk", r.hit, r.toi))
+            for who, h, t in results:
+                fn_, fp_ = fn_fp(h, truth)
+                m = h & truth
+                d = np.abs(t[m] - ref[m]) if m.any() else np.zeros(1)
+                cells += f" {f'{fn_}/{fp_}':>{10 if who == 'ours' else 11}s} {d.max():10.3g} |"
+                bad = [labels[i] for i in np.flatnonzero(truth != h)]
+                if bad:
+                    worst.setdefault(who, []).extend(bad[:5])
+            print(cells)
+    for who, bad in worst.items():
+        print(f"  {who} wrong on (first few per set): {', '.join(bad)}")
+
+
+# ------------------------------------------------------------------------------ mesh level
+
+
+def cloth_drop_scene(n: int = 32, seed: int = 0, height: float = 0.1, drop: float = 0.3):
+    """A wavy n x n cloth sheet (unit square, a few mm of random height noise) at ``height``
+    above a ground quad (2 triangles, z = 0), moved down by ``drop`` (+ noise) in one step.
+    Returns V0, V1, F (cloth then ground), and the exact first contact of the step: every cloth
+    vertex is above the ground's interior, so the earliest contact is the first cloth vertex to
+    reach z = 0, min_i z0_i / (z0_i - z1_i) (a cloth edge or face is never lower than its lowest
+    vertex)."""
+    rng = np.random.default_rng(seed)
+    u = np.linspace(0.0, 1.0, n)
+    X, Y = np.meshgrid(u, u, indexing="ij")
+    Z = height + 0.005 * rng.standard_normal(X.shape)
+    cloth = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    Fc = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    ground = np.array([[-1.0, -1.0, 0.0], [2.0, -1.0, 0.0], [2.0, 2.0, 0.0], [-1.0, 2.0, 0.0]])
+    Fg = np.array([[0, 1, 2], [0, 2, 3]]) + len(cloth)
+    V0 = np.vstack([cloth, ground])
+    V1 = V0.copy()
+    V1[: len(cloth), 2] -= drop + 0.01 * rng.random(len(cloth))
+    F = np.concatenate([Fc, Fg]).astype(np.int32)
+    z0, z1 = V0[: len(cloth), 2], V1[: len(cloth), 2]
+    t_exact = float(np.min(z0 / (z0 - z1)))
+    return V0, V1, F, t_exact
+
+
+def mesh_level(args, ours):
+    print("\nMesh level: one cloth step against the ground, largest collision-free step fraction")
+    V0, V1, F, t_exact = cloth_drop_scene(args.mesh_n, args.seed)
+    E = ipctk_peer.ipctk.edges(np.asfortranarray(F))
+    print(f"  scene: {len(V0)} vertices, {len(E)} edges, {len(F)} faces; exact first contact t = {t_exact:.9f}")
+    mesh = ipctk_peer.collision_mesh(V0, E, F)
+    for name, bp in (("default", None), ("HashGrid", ipctk_peer.ipctk.HashGrid()), ("LBVH", ipctk_peer.ipctk.LBVH())):
+        ipctk_peer.ipctk_stepsize(V0, V1, mesh=mesh, broad_phase=bp)  # warm-up
+        best, step = float("inf"), None
+        for _ in range(max(1, args.repeats)):
+            step, secs = ipctk_peer.ipctk_stepsize(V0, V1, mesh=mesh, broad_phase=bp)
+            best = min(best, secs)
+        print(
+            f"  ipctk compute_collision_free_stepsize ({name} broad phase, {ipctk_peer.ipctk.get_num_threads()} threads): "
+            f"step {step:.9f} (exact contact - step = {t_exact - step:.3g}) in {best * 1e3:.2f} ms"
+        )
+    # TODO(ccd): our side: the cloth step through the batched narrow phase (broad phase + collision.ccd)
+    # on the same V0 -> V1, reporting the earliest toi (vs t_exact) and its wall time, and the
+    # speed ratio against the ipctk line above.
+    print("  ours: not implemented yet (placeholder for the cloth-step comparison)")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--max-iterations", type=int, default=ipctk_peer.MAX_ITERATIONS, help="ipctk max_iterations")
+    ap.add_argument("--ipctk-sample", type=int, default=0, help="time ipctk on a random N queries per kind (0: all)")
+    ap.add_argument("--repeats", type=int, default=3, help="best of this many batched calls (ours)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--generated", action="store_true", help="also the exact-by-construction queries")
+    ap.add_argument("--n-generated", type=int, default=3, help="instances per generated case")
+    ap.add_argument("--toi", action="store_true", help="toi error against the exact contact time")
+    ap.add_argument("--mesh", action="store_true", help="mesh-level comparison (ipctk side)")
+    ap.add_argument("--mesh-n", type=int, default=32, help="cloth grid resolution for --mesh")
+    ap.add_argument("--peer-only", action="store_true", help="ipctk only (before collision.ccd exists)")
+    ap.add_argument("--skip-ipctk", action="store_true", help="ours only")
+    args = ap.parse_args()
+    ipctk_peer.quiet()
+    ours = None if args.peer_only else import_ours()
+    t0 = time.perf_counter()
+    sample_queries(args, ours)
+    if args.generated:
+        generated_queries(args, ours)
+    if args.mesh:
+        mesh_level(args, ours)
+    print(f"\ntotal {time.perf_counter() - t0:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
