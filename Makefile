@@ -28,6 +28,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/roots.py
+	$(PY) benchmarks/ccd.py --max-iterations 1000000 --generated --mesh
 
 fuzz: $(STAMP)
 	$(PY) benchmarks/fuzz_roots.py

@@ -222,3 +222,100 @@ def test_lifted_roots_of_a_miss_are_complex_and_differentiable():
     assert np.all(np.isfinite(roots.real)) and np.all(np.isfinite(roots.imag))
     r = edge_edge_roots(*([np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 1]]), np.array([[0.5, -1, 0]]), np.array([[0.5, 1, 0]])] * 2))
     assert r.shape == (1, 3)
+
+
+def test_lifted_roots_gradient_matches_finite_differences_for_a_miss():
+    """A vertex that misses: the coplanarity roots it would need are complex; under a tape their
+    derivative w.r.t. the positions is the mollified implicit one, here (well-separated roots,
+    clamp inactive) equal to 50-digit finite differences of the exact roots."""
+    from collision.ccd import _run
+
+    from collision.ccd import point_triangle_roots as roots_of
+
+    rng = np.random.default_rng(7)
+    while True:  # a query whose cubic has a complex pair and bounded roots
+        x = rng.uniform(-1, 1, (8, 3))
+        z = roots_of(*[x[k][None] for k in range(8)])[0]
+        if np.all(np.abs(z) < 10) and np.abs(z.imag).max() > 0.1:
+            break
+    queries = x[None]
+    hit, toi, source = _run(0, queries, 0.0)
+    q = wp.array(queries, dtype=kccd.mat83d, requires_grad=True)
+    out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    roots = wp.zeros(1, dtype=kccd.vec6d, requires_grad=True)
+    weights = np.array([0.3, -0.7, 1.1, 0.4, -0.2, 0.9])
+    tape = wp.Tape()
+    with tape:
+        wp.launch(kccd.ccd_time_of_impact_kernel, dim=1, inputs=[q, wp.array(source, dtype=wp.int32), wp.array(np.where(hit, toi, 1.0), dtype=wp.float64), wp.float64(1000.0)], outputs=[out, roots])
+    tape.backward(grads={roots: wp.array(weights[None], dtype=kccd.vec6d)})
+    grad = q.grad.numpy()[0]
+    r = roots.numpy()[0]
+    assert np.any(r[1::2] != 0), "expected a complex pair for this miss"
+
+    mp.mp.dps = 50
+
+    def mp_roots(xm):
+        d = [[xm[k][c] - xm[0][c] for c in range(3)] for k in (1, 2, 3)]
+        e = [[(xm[k + 4][c] - xm[4][c]) - d[k - 1][c] for c in range(3)] for k in (1, 2, 3)]
+
+        def cross(u, v):
+            return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+
+        def dot(u, v):
+            return sum(a * b for a, b in zip(u, v))
+
+        c0 = dot(cross(d[0], d[1]), d[2])
+        c1 = dot(cross(e[0], d[1]), d[2]) + dot(cross(d[0], e[1]), d[2]) + dot(cross(d[0], d[1]), e[2])
+        c2 = dot(cross(e[0], e[1]), d[2]) + dot(cross(e[0], d[1]), e[2]) + dot(cross(d[0], e[1]), e[2])
+        c3 = dot(cross(e[0], e[1]), e[2])
+        return mp.polyroots([c3, c2, c1, c0], maxsteps=200, extraprec=200)
+
+    def weighted(xm):
+        rts = mp_roots(xm)
+        total = mp.mpf(0)
+        for s in range(3):  # match each computed slot to the nearest exact root
+            z = complex(r[2 * s], r[2 * s + 1])
+            best = min(rts, key=lambda w: abs(complex(w) - z))
+            total += weights[2 * s] * best.real + weights[2 * s + 1] * best.imag
+        return total
+
+    xm = [[mp.mpf(float(v)) for v in row_] for row_ in x]
+    h = mp.mpf(10) ** -20
+    for i in range(8):
+        for c in range(3):
+            xp = [row_[:] for row_ in xm]
+            xn = [row_[:] for row_ in xm]
+            xp[i][c] += h
+            xn[i][c] -= h
+            fd = float((weighted(xp) - weighted(xn)) / (2 * h))
+            assert abs(grad[i, c] - fd) <= 1e-7 * max(1.0, abs(fd)), (i, c, grad[i, c], fd)
+
+
+def test_mesh_ccd_cloth_drop_earliest_time_and_errors():
+    from collision.ccd import mesh_ccd
+
+    n = 12
+    xs, ys = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
+    cloth = np.column_stack([xs.ravel(), ys.ravel(), np.full(n * n, 0.25)])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
+    ground = np.array([[-3.0, -3.0, 0.0], [3.0, -3.0, 0.0], [0.0, 3.0, 0.0]])
+    x0 = np.vstack([cloth, ground])
+    x1 = x0.copy()
+    x1[: n * n, 2] -= 1.0  # falls 1 m in the step: touches the plane z = 0 at t = 1/4
+    all_faces = np.vstack([faces, [[n * n, n * n + 1, n * n + 2]]])
+    groups = np.r_[np.zeros(n * n, int), np.ones(3, int)]
+    result = mesh_ccd(x0, x1, all_faces, groups=groups, self_collision=[True, False], static=[False, True])
+    assert result.time_of_impact == 0.25
+    assert result.vf_hit.sum() >= n * n  # every cloth vertex hits the ground triangle
+    bad_faces = all_faces.copy()
+    bad_faces[0, 0] = len(x0) + 5
+    with pytest.raises(ValueError, match="faces"):
+        mesh_ccd(x0, x1, bad_faces)
+    x_nan = x1.copy()
+    x_nan[3, 1] = np.nan
+    with pytest.raises(ValueError, match="x1"):
+        mesh_ccd(x0, x_nan, all_faces)
