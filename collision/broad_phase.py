@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from collision.roots import _init
 from kernels import broad_phase as _k
 
 __all__ = ["PAD_ABS", "PAD_REL", "BroadPhase", "candidate_pairs", "mesh_edges"]
@@ -56,16 +57,6 @@ _DEFAULT_DEVICE = "cpu"
 _INT32_MAX = np.iinfo(np.int32).max
 _INITIAL_PAIRS_PER_PRIMITIVE = 8
 """Starting capacity of the pair buffers (per query primitive); they grow on overflow."""
-_initialised = False
-
-
-def _init() -> None:
-    global _initialised
-    if not _initialised:
-        # keep Warp's banner off stdout: scene CLIs print exactly one JSON line there
-        wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.config.log_level
-        wp.init()
-        _initialised = True
 
 
 # ----------------------------------------------------------------------------------------------

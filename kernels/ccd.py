@@ -172,6 +172,23 @@ def advance(kind: int, m: mat83d, thickness: wp.float64, tolerance: wp.float64, 
 
 
 @wp.func
+def candidate_contact(
+    kind: int, m: mat83d, re: wp.float64, im: wp.float64, dt: wp.float64, tol_distance: wp.float64, speed: wp.float64
+) -> wp.float64:
+    """Time in [0, 1] of a contact at the candidate root ``re + i im`` with time uncertainty
+    ``dt``, or 2 when it is no contact: the root must be real up to ``dt`` and inside [0, 1] up to
+    ``dt``, and the primitives within the distance they can cover in ``dt + |im|`` (plus the
+    distance computation's own rounding)."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if wp.abs(im) <= dt and re >= -dt and re <= one + dt:
+        t = wp.clamp(re, zero, one)
+        if distance_at(kind, m, t) <= tol_distance + speed * (dt + wp.abs(im)):
+            return t
+    return wp.float64(2.0)
+
+
+@wp.func
 def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
     """Earliest contact of one query.
 
@@ -212,12 +229,10 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
             re = roots[slot + slot]
             im = roots[slot + slot + 1]
             dt = root_time_uncertainty(coefficients, re, coefficient_error)
-            if wp.abs(im) <= dt and re >= -dt and re <= one + dt:
-                t = wp.clamp(re, zero, one)
-                if t < best:
-                    if distance_at(kind, m, t) <= tol_distance + speed * (dt + wp.abs(im)):
-                        best = t
-                        source = wp.float64(1.0) + wp.float64(slot)
+            t = candidate_contact(kind, m, re, im, dt, tol_distance, speed)
+            if t < best:
+                best = t
+                source = wp.float64(1.0) + wp.float64(slot)
     else:
         # coplanar for the whole step: first contact is a vertex meeting an edge
         for combo in range(4):
@@ -241,12 +256,10 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
                             re = pair_roots[r + r]
                             im = pair_roots[r + r + 1]
                             dt = root_time_uncertainty(cubic_view, re, err)
-                            if wp.abs(im) <= dt and re >= -dt and re <= one + dt:
-                                t = wp.clamp(re, zero, one)
-                                if t < best:
-                                    if distance_at(kind, m, t) <= tol_distance + speed * (dt + wp.abs(im)):
-                                        best = t
-                                        source = wp.float64(4.0)
+                            t = candidate_contact(kind, m, re, im, dt, tol_distance, speed)
+                            if t < best:
+                                best = t
+                                source = wp.float64(4.0)
                 if n_significant == 0:
                     # vertex and edge stay collinear: the vertex enters the segment when it meets
                     # an endpoint, p(t) = e(t), linear in each coordinate
@@ -258,12 +271,10 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
                             if wp.abs(g1[comp]) > COPLANAR_RELATIVE * extent:
                                 t_lin = -g0[comp] / g1[comp]
                                 dt_lin = DISTANCE_ERROR_FACTOR * UNIT_ROUNDOFF * extent / wp.abs(g1[comp])
-                                if t_lin >= -dt_lin and t_lin <= one + dt_lin:
-                                    t = wp.clamp(t_lin, zero, one)
-                                    if t < best:
-                                        if distance_at(kind, m, t) <= tol_distance + speed * dt_lin:
-                                            best = t
-                                            source = wp.float64(4.0)
+                                t = candidate_contact(kind, m, t_lin, zero, dt_lin, tol_distance, speed)
+                                if t < best:
+                                    best = t
+                                    source = wp.float64(4.0)
         if distance_at(kind, m, one) <= tol_distance and one < best:
             best = one
             source = wp.float64(4.0)
