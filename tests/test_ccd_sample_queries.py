@@ -25,7 +25,11 @@ from exact_ccd import exact_ccd  # noqa: E402
 
 from collision.ccd import edge_edge_ccd, point_triangle_ccd  # noqa: E402
 
-pytestmark = pytest.mark.skipif(not ccd_queries.available(), reason="sample queries not found (set TUNNELSIM_CCD_QUERIES)")
+# Skipped only outside CI when the data folder is absent (a clone without ../shared); under CI
+# (CI=true) a missing data set fails the tests instead of hiding them.
+pytestmark = pytest.mark.skipif(
+    not ccd_queries.available() and not os.environ.get("CI"), reason="sample queries not found (set TUNNELSIM_CCD_QUERIES)"
+)
 
 CCD = {"vertex-face": point_triangle_ccd, "edge-edge": edge_edge_ccd}
 KINDS = list(CCD)
@@ -47,7 +51,7 @@ def test_no_false_negatives(kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_no_more_false_positives_than_tight_inclusion(kind):
-    ipctk_peer = pytest.importorskip("ipctk_peer")
+    import ipctk_peer  # installed by make test (bench extra); a missing peer is an error
     qs, hit, _ = _ours(kind)
     scenes = qs.scenes()
     ours_fp = int(np.sum(hit & ~qs.truth))
