@@ -1,0 +1,943 @@
+"""Newton-style :class:`ModelBuilder`: add cloth, rigid bodies and static colliders, then
+:meth:`ModelBuilder.finalize` into a :class:`sim.model.Model` of float64 Warp arrays.
+
+Every ``add_*`` method validates all of its arguments first and raises a :class:`ValueError` that
+names the offending argument before anything is written, so a failed call leaves the builder
+unchanged. Units are SI (m, kg, s, N); rotations are unit quaternions ``(x, y, z, w)`` or 3x3
+rotation matrices.
+
+Example:
+    >>> from sim.builder import ModelBuilder
+    >>> from sim.mesh_io import box_mesh
+    >>> b = ModelBuilder()
+    >>> cloth = b.add_cloth_grid((0, 0, 1), None, 4, 4, 0.25, 0.25, density=0.2,
+    ...     stretch_stiffness=1e3, shear_stiffness=1e2, bend_stiffness=10.0, damping=0.1,
+    ...     pinned=[0, 4])
+    >>> body = b.add_rigid_body(*box_mesh(0.1), density=500.0, pos=(0, 0, 0.5))
+    >>> b.add_ground_plane()
+    0
+    >>> model = b.finalize("cpu")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from sim.model import COMPONENTS, Model
+
+__all__ = ["MassProperties", "ModelBuilder", "mesh_mass_properties", "quat_from_matrix", "quat_to_matrix"]
+
+ROTATION_TOL = 1e-4
+"""Accepted deviation of a rotation from unit norm / orthonormality before it is re-normalised.
+Loose enough for hand-typed values such as ``(0, 0, 0.7071, 0.7071)`` (error 1e-5), tight enough to
+reject a non-rotation (e.g. an axis-angle vector or a scaled matrix)."""
+
+DEGENERATE_TRIANGLE_RTOL = 1e-12
+"""A triangle is degenerate when twice its area is at most this times its longest edge squared
+(height/longest-edge ratio below 1e-12, i.e. zero to within a few thousand ulps of float64)."""
+
+VOLUME_RTOL = 1e-12
+"""A closed mesh has zero volume when |V| is at most this times the cube of its bounding-box
+diagonal (flat or fully self-cancelling meshes)."""
+
+_Vec3Like = Sequence[float] | np.ndarray
+Pinned = Sequence[int] | np.ndarray | Callable[[int, np.ndarray], bool]
+
+
+# --------------------------------------------------------------------------------------------
+# small validation helpers (all raise ValueError naming the argument)
+# --------------------------------------------------------------------------------------------
+
+
+def _scalar(x, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
+    if isinstance(x, bool) or np.ndim(x) != 0:
+        raise ValueError(f"{name} must be a real scalar, got {x!r}")
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real scalar, got {x!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}")
+    if positive and not v > 0.0:
+        raise ValueError(f"{name} must be > 0, got {v}")
+    if nonnegative and not v >= 0.0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+def _float_array(x, name: str, shape: tuple) -> np.ndarray:
+    """float64 copy of ``x`` checked against ``shape`` (``None`` entries: any size) and finiteness."""
+    try:
+        a = np.array(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real array of shape {_shape_str(shape)}, got {x!r}") from None
+    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+        raise ValueError(f"{name} must have shape {_shape_str(shape)}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return a
+
+
+def _shape_str(shape: tuple) -> str:
+    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _vec3(x, name: str) -> np.ndarray:
+    return _float_array(x, name, (3,))
+
+
+def _vertices(x, name: str, min_count: int = 3) -> np.ndarray:
+    v = _float_array(x, name, (None, 3))
+    if len(v) < min_count:
+        raise ValueError(f"{name} needs at least {min_count} vertices, got {len(v)}")
+    return v
+
+
+def _triangles(t, n_vertices: int, name: str) -> np.ndarray:
+    try:
+        a = np.asarray(t)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an integer array of shape (T, 3)") from None
+    if a.size == 0 and a.ndim <= 2:
+        raise ValueError(f"{name} is empty: at least one triangle is needed")
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{name} must be an integer array of shape (T, 3), got dtype {a.dtype}")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (T, 3), got {a.shape}")
+    a = a.astype(np.int64)
+    if a.min() < 0:
+        raise ValueError(f"{name} contains negative indices (min {a.min()})")
+    if a.max() >= n_vertices:
+        raise ValueError(f"{name} index {a.max()} out of range for {n_vertices} vertices")
+    return a
+
+
+def _check_nondegenerate(v: np.ndarray, t: np.ndarray, name: str) -> np.ndarray:
+    """Twice the area of every triangle [m^2]; raises on zero-area triangles."""
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    longest2 = np.max(
+        np.stack([np.sum((b - a) ** 2, 1), np.sum((c - b) ** 2, 1), np.sum((a - c) ** 2, 1)]), axis=0
+    )
+    bad = np.flatnonzero(area2 <= DEGENERATE_TRIANGLE_RTOL * longest2)
+    if bad.size:
+        raise ValueError(
+            f"{name} has {bad.size} degenerate (zero-area) triangle(s), first: index {bad[0]} "
+            f"= {t[bad[0]].tolist()}"
+        )
+    return area2
+
+
+def _compact(v: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drops vertices no triangle references (indices remapped, order kept)."""
+    used = np.zeros(len(v), dtype=bool)
+    used[t.reshape(-1)] = True
+    if used.all():
+        return v, t
+    new = np.cumsum(used) - 1
+    return v[used], new[t]
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion ``(x, y, z, w)``."""
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_from_matrix(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd's method)."""
+    r = np.asarray(r, dtype=np.float64)
+    tr = np.trace(r)
+    k = int(np.argmax([tr, r[0, 0], r[1, 1], r[2, 2]]))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def _rotation(rot, name: str = "rot") -> tuple[np.ndarray, np.ndarray]:
+    """(matrix (3, 3), quaternion xyzw (4,)) of ``rot``: None (identity), a quaternion or a matrix."""
+    if rot is None:
+        return np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
+    try:
+        a = None if isinstance(rot, str) else np.asarray(rot, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape not in ((4,), (3, 3)):
+        raise ValueError(
+            f"{name} must be a quaternion (x, y, z, w) of shape (4,) or a 3x3 rotation matrix, "
+            f"got shape {None if a is None else a.shape}"
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    if a.shape == (4,):
+        n = np.linalg.norm(a)
+        if abs(n - 1.0) > ROTATION_TOL:
+            raise ValueError(f"{name} quaternion (x, y, z, w) must have unit norm, got norm {n:.6g}")
+        q = a / n
+        return quat_to_matrix(q), q
+    err = np.max(np.abs(a.T @ a - np.eye(3)))
+    if err > ROTATION_TOL or np.linalg.det(a) <= 0.0:
+        raise ValueError(
+            f"{name} matrix must be a rotation (orthonormal, det +1); |R^T R - I|_max = {err:.3g}, "
+            f"det = {np.linalg.det(a):.6g}"
+        )
+    q = quat_from_matrix(a)
+    return quat_to_matrix(q), q
+
+
+def _velocities(v, n: int, name: str) -> np.ndarray:
+    """(n, 3) velocities from one shared (3,) vector or per-particle (n, 3) values."""
+    try:
+        shape = np.shape(v)
+    except ValueError:
+        raise ValueError(f"{name} must have shape (3,) or ({n}, 3)") from None
+    if shape == (3,):
+        return np.tile(_vec3(v, name), (n, 1))
+    if shape != (n, 3):
+        raise ValueError(f"{name} must have shape (3,) or ({n}, 3), got {shape}")
+    return _float_array(v, name, (n, 3))
+
+
+def _pinned_mask(pinned, positions: np.ndarray, name: str = "pinned") -> np.ndarray:
+    """Boolean (N,) mask from an index list, a boolean mask (N,) or ``pinned(i, x) -> bool``."""
+    n = len(positions)
+    if pinned is None:
+        return np.zeros(n, dtype=bool)
+    if callable(pinned):
+        return np.array([bool(pinned(i, positions[i].copy())) for i in range(n)], dtype=bool)
+    try:
+        a = np.asarray(pinned)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D list of particle indices, a boolean mask or a callable") from None
+    if a.size == 0:
+        return np.zeros(n, dtype=bool)
+    if a.dtype == bool:
+        if a.shape != (n,):
+            raise ValueError(f"{name} as a boolean mask must have shape ({n},), got {a.shape}")
+        return a.copy()
+    if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{name} must be a 1-D list of particle indices, a boolean mask or a callable")
+    if a.min() < 0 or a.max() >= n:
+        raise ValueError(f"{name} index out of range [0, {n}): min {a.min()}, max {a.max()}")
+    mask = np.zeros(n, dtype=bool)
+    mask[a] = True
+    return mask
+
+
+def _lumped_masses(v: np.ndarray, t: np.ndarray, area2: np.ndarray, density: float) -> np.ndarray:
+    """Each triangle's mass (density x area) split in thirds onto its corners [kg] (N,)."""
+    m = np.zeros(len(v))
+    share = density * 0.5 * area2 / 3.0
+    for k in range(3):
+        np.add.at(m, t[:, k], share)
+    return m
+
+
+# --------------------------------------------------------------------------------------------
+# mass properties of closed triangle meshes
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MassProperties:
+    """Mass properties of a homogeneous solid bounded by a closed triangle mesh.
+
+    Attributes:
+        volume: [m^3] (positive for outward-oriented meshes).
+        mass: density x volume [kg].
+        com: centre of mass [m], (3,), in the mesh's frame.
+        inertia: inertia tensor about the centre of mass, mesh axes [kg m^2], (3, 3).
+        inertia_origin: inertia tensor about the mesh frame's origin [kg m^2], (3, 3)
+            (= ``inertia + mass * (|c|^2 I - c c^T)``, parallel axis theorem).
+    """
+
+    volume: float
+    mass: float
+    com: np.ndarray
+    inertia: np.ndarray
+    inertia_origin: np.ndarray
+
+
+def mesh_mass_properties(vertices: np.ndarray, triangles: np.ndarray, density: float = 1.0) -> MassProperties:
+    """Volume, mass, centre of mass and inertia of the solid enclosed by a closed mesh.
+
+    Divergence theorem on signed tetrahedra ``(r, a, b, c)``, one per triangle, with apex ``r`` the
+    vertex mean (subtracted first to limit cancellation): ``V_i = det(a, b, c) / 6`` and the second
+    moment ``int x x^T dV = det/120 (a a^T + b b^T + c c^T + s s^T)``, ``s = a + b + c`` (e.g.
+    Eberly, "Polyhedral Mass Properties (Revisited)"; Blow & Binstock, "How to find the inertia
+    tensor (or other mass properties) of a 3D solid body represented by a triangle mesh").
+    The mesh is not validated here; see :meth:`ModelBuilder.add_rigid_body` for that.
+
+    Args:
+        vertices: Positions [m], float (N, 3).
+        triangles: Outward-oriented (counter-clockwise seen from outside) indices, int (T, 3).
+        density: [kg/m^3].
+
+    Returns:
+        :class:`MassProperties`.
+
+    Raises:
+        ValueError: If the signed volume is exactly zero (NaN inputs also end here).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    ref = v.mean(axis=0)
+    p = v - ref
+    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))
+    volume = det.sum() / 6.0
+    s = a + b + c
+    first = (det[:, None] * s).sum(axis=0) / 24.0  # int x dV about ref
+    second = np.einsum("i,ij,ik->jk", det, a, a)
+    second += np.einsum("i,ij,ik->jk", det, b, b)
+    second += np.einsum("i,ij,ik->jk", det, c, c)
+    second += np.einsum("i,ij,ik->jk", det, s, s)
+    second /= 120.0  # int (x - ref)(x - ref)^T dV
+    if not volume != 0.0:
+        raise ValueError("vertices/triangles enclose zero volume (0 m^3): not a closed solid")
+    mass = density * volume
+    d = first / volume  # com - ref
+    cov_com = density * second - mass * np.outer(d, d)
+    cov_com = 0.5 * (cov_com + cov_com.T)
+    com = ref + d
+    inertia = np.trace(cov_com) * np.eye(3) - cov_com
+    inertia_origin = inertia + mass * (np.dot(com, com) * np.eye(3) - np.outer(com, com))
+    return MassProperties(float(volume), float(mass), com, inertia, inertia_origin)
+
+
+def _check_closed_oriented(t: np.ndarray, n: int, name: str) -> None:
+    """Every directed edge once and its reverse present: closed, 2-manifold edges, consistent winding."""
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    key = e[:, 0] * n + e[:, 1]
+    uniq, counts = np.unique(key, return_counts=True)
+    if np.any(counts > 1):
+        k = uniq[np.argmax(counts > 1)]
+        raise ValueError(
+            f"{name}: edge ({k // n}, {k % n}) is traversed in the same direction by "
+            f"{counts.max()} triangles: the mesh is non-manifold or inconsistently oriented"
+        )
+    rev = e[:, 1] * n + e[:, 0]
+    missing = ~np.isin(rev, uniq)
+    if np.any(missing):
+        i = np.argmax(missing)
+        raise ValueError(
+            f"{name}: the mesh is open ({int(missing.sum())} boundary edge(s), e.g. "
+            f"({e[i, 0]}, {e[i, 1]})); a rigid body needs a closed, consistently oriented surface"
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# builder
+# --------------------------------------------------------------------------------------------
+
+
+class ModelBuilder:
+    """Collects particles, springs, cloth triangles, rigid bodies and static colliders.
+
+    Args:
+        gravity: Gravitational acceleration [m/s^2], (3,) (see :meth:`set_gravity`).
+
+    Attributes (read-only counts): ``particle_count``, ``spring_count``, ``tri_count``,
+    ``body_count``, ``plane_count``, ``static_vertex_count``, ``static_face_count``,
+    ``components``.
+    """
+
+    def __init__(self, gravity: _Vec3Like | float = (0.0, 0.0, -9.81)) -> None:
+        self._gravity = np.array([0.0, 0.0, -9.81])
+        self.set_gravity(gravity)
+        self._components: set[str] = set()
+
+        self._particle_q: list[np.ndarray] = []
+        self._particle_qd: list[np.ndarray] = []
+        self._particle_mass: list[np.ndarray] = []
+        self._particle_n = 0
+
+        self._spring_idx: list[np.ndarray] = []
+        self._spring_rest: list[np.ndarray] = []
+        self._spring_k: list[np.ndarray] = []
+        self._spring_d: list[np.ndarray] = []
+        self._spring_n = 0
+
+        self._tris: list[np.ndarray] = []
+        self._tri_n = 0
+
+        self._body_q: list[np.ndarray] = []  # (7,) p, q(xyzw)
+        self._body_qd: list[np.ndarray] = []  # (6,) w, v
+        self._body_mass: list[float] = []
+        self._body_inertia: list[np.ndarray] = []
+        self._shape_v: list[np.ndarray] = []
+        self._shape_f: list[np.ndarray] = []
+        self._shape_body: list[np.ndarray] = []
+        self._shape_vn = 0
+
+        self._static_v: list[np.ndarray] = []
+        self._static_f: list[np.ndarray] = []
+        self._static_vn = 0
+        self._static_mesh_n = 0
+        self._planes: list[np.ndarray] = []
+
+        self._restitution = 0.0
+        self._friction = 0.5
+        self._thickness = 0.0
+
+    # ---------------------------------------------------------------- global settings
+    def set_gravity(self, g: _Vec3Like | float) -> None:
+        """Sets gravity [m/s^2]: a (3,) vector, or a scalar taken as its z component (e.g. -9.81)."""
+        if np.ndim(g) == 0:
+            self._gravity = np.array([0.0, 0.0, _scalar(g, "g")])
+        else:
+            self._gravity = _vec3(g, "g")
+
+    @property
+    def gravity(self) -> np.ndarray:
+        """Gravitational acceleration [m/s^2], (3,) (copy)."""
+        return self._gravity.copy()
+
+    @property
+    def restitution(self) -> float:
+        """Coefficient of restitution in [0, 1]."""
+        return self._restitution
+
+    @restitution.setter
+    def restitution(self, value: float) -> None:
+        v = _scalar(value, "restitution", nonnegative=True)
+        if v > 1.0:
+            raise ValueError(f"restitution must be in [0, 1], got {v}")
+        self._restitution = v
+
+    @property
+    def friction(self) -> float:
+        """Coulomb friction coefficient (>= 0)."""
+        return self._friction
+
+    @friction.setter
+    def friction(self, value: float) -> None:
+        self._friction = _scalar(value, "friction", nonnegative=True)
+
+    @property
+    def thickness(self) -> float:
+        """Minimum separation kept by the collision response [m] (>= 0; 0 = none)."""
+        return self._thickness
+
+    @thickness.setter
+    def thickness(self, value: float) -> None:
+        self._thickness = _scalar(value, "thickness", nonnegative=True)
+
+    def set_contact(
+        self, *, restitution: float | None = None, friction: float | None = None, thickness: float | None = None
+    ) -> None:
+        """Sets any of restitution [0..1], friction (>= 0) and thickness [m] (>= 0), all-or-nothing."""
+        r = self._restitution if restitution is None else _scalar(restitution, "restitution", nonnegative=True)
+        if r > 1.0:
+            raise ValueError(f"restitution must be in [0, 1], got {r}")
+        f = self._friction if friction is None else _scalar(friction, "friction", nonnegative=True)
+        h = self._thickness if thickness is None else _scalar(thickness, "thickness", nonnegative=True)
+        self._restitution, self._friction, self._thickness = r, f, h
+
+    def add_component(self, name: str) -> None:
+        """Declares a component the scene needs (one of :data:`sim.model.COMPONENTS`)."""
+        if name not in COMPONENTS:
+            raise ValueError(f"name must be one of {COMPONENTS}, got {name!r}")
+        self._components.add(name)
+
+    def enable_self_collision(self) -> None:
+        """Asks the stepper for cloth self-collision (adds the ``"self_collision"`` component)."""
+        self._components.add("self_collision")
+
+    # ---------------------------------------------------------------- counts
+    @property
+    def components(self) -> frozenset:
+        """Components added so far (subset of :data:`sim.model.COMPONENTS`)."""
+        return frozenset(self._components)
+
+    @property
+    def particle_count(self) -> int:
+        """P: particles added so far."""
+        return self._particle_n
+
+    @property
+    def spring_count(self) -> int:
+        """S: springs added so far."""
+        return self._spring_n
+
+    @property
+    def tri_count(self) -> int:
+        """T: cloth triangles added so far."""
+        return self._tri_n
+
+    @property
+    def body_count(self) -> int:
+        """B: rigid bodies added so far."""
+        return len(self._body_mass)
+
+    @property
+    def plane_count(self) -> int:
+        """Static half-space planes added so far."""
+        return len(self._planes)
+
+    @property
+    def static_vertex_count(self) -> int:
+        """Vertices of all static meshes (after dropping unused ones)."""
+        return self._static_vn
+
+    @property
+    def static_face_count(self) -> int:
+        """Triangles of all static meshes."""
+        return sum(len(f) for f in self._static_f)
+
+    # ---------------------------------------------------------------- particles / cloth
+    def _commit_particles(self, q, qd, mass, springs=None, rest=None, k=None, d=None, tris=None) -> range:
+        """Appends already-validated particle data (local indices offset here)."""
+        start = self._particle_n
+        self._particle_q.append(q)
+        self._particle_qd.append(qd)
+        self._particle_mass.append(mass)
+        self._particle_n += len(q)
+        if springs is not None and len(springs):
+            self._spring_idx.append(springs + start)
+            self._spring_rest.append(rest)
+            self._spring_k.append(k)
+            self._spring_d.append(d)
+            self._spring_n += len(springs)
+        if tris is not None and len(tris):
+            self._tris.append(tris + start)
+            self._tri_n += len(tris)
+        self._components.add("cloth")
+        return range(start, self._particle_n)
+
+    def add_particle(
+        self, pos: _Vec3Like, velocity: _Vec3Like = (0.0, 0.0, 0.0), mass: float = 1.0, *, pinned: bool = False
+    ) -> int:
+        """Adds one free particle (simulated with the cloth; adds the ``"cloth"`` component).
+
+        Args:
+            pos: Position [m], (3,).
+            velocity: Velocity [m/s], (3,).
+            mass: [kg], > 0 (a pinned particle stores 0 regardless).
+            pinned: Kinematic particle (mass and inverse mass 0).
+
+        Returns:
+            The particle's index.
+        """
+        p = _vec3(pos, "pos")
+        v = _vec3(velocity, "velocity")
+        m = _scalar(mass, "mass", positive=True)
+        r = self._commit_particles(p[None], v[None], np.array([0.0 if pinned else m]))
+        return r.start
+
+    @staticmethod
+    def _springs(q: np.ndarray, pairs: np.ndarray, k: float, d: float, what: str):
+        rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)
+        bad = np.flatnonzero(rest <= 0.0)
+        if bad.size:
+            raise ValueError(f"{what} spring between coincident particles {pairs[bad[0]].tolist()}")
+        return rest, np.full(len(pairs), k), np.full(len(pairs), d)
+
+    def add_cloth_grid(
+        self,
+        pos: _Vec3Like,
+        rot,
+        dim_x: int,
+        dim_y: int,
+        cell_x: float,
+        cell_y: float,
+        *,
+        density: float,
+        stretch_stiffness: float,
+        shear_stiffness: float,
+        bend_stiffness: float,
+        damping: float,
+        velocity: _Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
+        pinned: Pinned = (),
+    ) -> range:
+        """Adds a rectangular cloth of ``dim_x x dim_y`` cells in its local x-y plane.
+
+        Particle ``(i, j)`` (``0 <= i <= dim_x``, ``0 <= j <= dim_y``) has local index
+        ``j * (dim_x + 1) + i`` and world position ``pos + R @ (i * cell_x, j * cell_y, 0)``
+        (so ``pos`` is the corner of particle 0). Cell ``(i, j)`` is split along its
+        ``(i, j)-(i+1, j+1)`` diagonal into two triangles wound counter-clockwise about local +z.
+
+        Springs (in this order): stretch along every grid edge, ``dim_x (dim_y + 1) + dim_y (dim_x
+        + 1)``; shear on both diagonals of every cell, ``2 dim_x dim_y``; bending between
+        distance-2 neighbours along rows and columns, ``(dim_x - 1)(dim_y + 1) + (dim_y - 1)(dim_x
+        + 1)`` (none along an axis with a single cell). Rest lengths are the initial distances.
+
+        Args:
+            pos: Position of particle 0 [m], (3,).
+            rot: Orientation: quaternion ``(x, y, z, w)``, 3x3 rotation matrix or None (identity).
+            dim_x: Cells along local x (>= 1).
+            dim_y: Cells along local y (>= 1).
+            cell_x: Cell size along x [m] (> 0).
+            cell_y: Cell size along y [m] (> 0).
+            density: Areal density [kg/m^2] (> 0); each triangle gives area/3 of its mass to each
+                corner.
+            stretch_stiffness: [N/m] (>= 0).
+            shear_stiffness: [N/m] (>= 0).
+            bend_stiffness: [N/m] (>= 0).
+            damping: Damping of every spring along its axis [N s/m] (>= 0).
+            velocity: Initial velocity [m/s], (3,) for all particles or (P, 3) per particle.
+            pinned: Local indices (or a boolean mask (P,), or ``pinned(index, world_pos) -> bool``)
+                of kinematic particles: mass and inverse mass 0.
+
+        Returns:
+            Global indices of the new particles.
+        """
+        nx = self._int(dim_x, "dim_x")
+        ny = self._int(dim_y, "dim_y")
+        cx = _scalar(cell_x, "cell_x", positive=True)
+        cy = _scalar(cell_y, "cell_y", positive=True)
+        p0 = _vec3(pos, "pos")
+        r, _ = _rotation(rot)
+        rho = _scalar(density, "density", positive=True)
+        ks = _scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
+        kh = _scalar(shear_stiffness, "shear_stiffness", nonnegative=True)
+        kb = _scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
+        kd = _scalar(damping, "damping", nonnegative=True)
+
+        i, j = np.meshgrid(np.arange(nx + 1), np.arange(ny + 1))  # (ny+1, nx+1), row j
+        local = np.stack([i * cx, j * cy, np.zeros_like(i, dtype=np.float64)], axis=-1).reshape(-1, 3)
+        q = p0 + local @ r.T
+        n = len(q)
+        qd = _velocities(velocity, n, "velocity")
+        mask = _pinned_mask(pinned, q)
+
+        idx = np.arange(n).reshape(ny + 1, nx + 1)
+        c00, c10, c01, c11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        tris = np.concatenate(
+            [np.stack([c00, c10, c11], -1).reshape(-1, 3), np.stack([c00, c11, c01], -1).reshape(-1, 3)]
+        )
+        # interleave so the two triangles of a cell are consecutive: cell-major order
+        tris = tris.reshape(2, -1, 3).transpose(1, 0, 2).reshape(-1, 3)
+
+        def pairs(a, b):
+            return np.stack([a.reshape(-1), b.reshape(-1)], axis=1)
+
+        stretch = np.concatenate([pairs(idx[:, :-1], idx[:, 1:]), pairs(idx[:-1, :], idx[1:, :])])
+        shear = np.concatenate([pairs(c00, c11), pairs(c10, c01)])
+        bend = np.concatenate([pairs(idx[:, :-2], idx[:, 2:]), pairs(idx[:-2, :], idx[2:, :])])
+
+        area2 = np.linalg.norm(np.cross(q[tris[:, 1]] - q[tris[:, 0]], q[tris[:, 2]] - q[tris[:, 0]]), axis=1)
+        mass = _lumped_masses(q, tris, area2, rho)
+        mass[mask] = 0.0
+
+        springs, rests, ks_, kd_ = [], [], [], []
+        for prs, k, what in ((stretch, ks, "stretch"), (shear, kh, "shear"), (bend, kb, "bending")):
+            if len(prs):
+                rest, kk, dd = self._springs(q, prs, k, kd, what)
+                springs.append(prs), rests.append(rest), ks_.append(kk), kd_.append(dd)
+        return self._commit_particles(
+            q, qd, mass,
+            np.concatenate(springs).astype(np.int64), np.concatenate(rests),
+            np.concatenate(ks_), np.concatenate(kd_), tris,
+        )  # fmt: skip
+
+    def add_cloth_mesh(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        *,
+        density: float,
+        stretch_stiffness: float,
+        bend_stiffness: float,
+        damping: float,
+        velocity: _Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
+        pinned: Pinned = (),
+        pos: _Vec3Like = (0.0, 0.0, 0.0),
+        rot=None,
+    ) -> range:
+        """Adds a cloth from a triangle mesh: one particle per vertex.
+
+        Springs: stretch on every unique edge (sorted by ``(min, max)`` vertex index), then
+        bending across every interior edge, between the two vertices opposite it (deduplicated).
+        Edges shared by more than two triangles are rejected (bending would be ambiguous).
+
+        Args:
+            vertices: Rest positions [m], float (N, 3), in the mesh frame; world positions are
+                ``pos + R @ v``.
+            triangles: Vertex indices, int (T, 3); every vertex must be used (a vertex without
+                triangles would have no mass).
+            density: Areal density [kg/m^2] (> 0); area/3 of each triangle to each corner.
+            stretch_stiffness: [N/m] (>= 0).
+            bend_stiffness: [N/m] (>= 0).
+            damping: Damping of every spring along its axis [N s/m] (>= 0).
+            velocity: Initial velocity [m/s], (3,) or (N, 3).
+            pinned: Local vertex indices, a boolean mask (N,) or ``pinned(index, world_pos) ->
+                bool``; pinned particles get mass and inverse mass 0.
+            pos: Translation [m], (3,).
+            rot: Quaternion ``(x, y, z, w)``, 3x3 rotation matrix or None (identity).
+
+        Returns:
+            Global indices of the new particles (in vertex order).
+        """
+        v = _vertices(vertices, "vertices")
+        t = _triangles(triangles, len(v), "triangles")
+        rho = _scalar(density, "density", positive=True)
+        ks = _scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
+        kb = _scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
+        kd = _scalar(damping, "damping", nonnegative=True)
+        p0 = _vec3(pos, "pos")
+        r, _ = _rotation(rot)
+        n = len(v)
+        qd = _velocities(velocity, n, "velocity")
+        area2 = _check_nondegenerate(v, t, "triangles")
+        used = np.zeros(n, dtype=bool)
+        used[t.reshape(-1)] = True
+        if not used.all():
+            raise ValueError(
+                f"vertices: {int((~used).sum())} vertex/vertices (first {int(np.argmin(used))}) belong to "
+                "no triangle and would have no mass"
+            )
+        st = np.sort(t, axis=1)
+        _, tcount = np.unique(st, axis=0, return_counts=True)
+        if np.any(tcount > 1):
+            raise ValueError("triangles contains duplicate triangles (same three vertices)")
+
+        # half-edges: edge k of triangle f is (t[f,k], t[f,k+1]); its opposite vertex t[f,k+2]
+        he = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        opp = np.concatenate([t[:, 2], t[:, 0], t[:, 1]])
+        he = np.sort(he, axis=1)
+        key = he[:, 0] * n + he[:, 1]
+        order = np.argsort(key, kind="stable")
+        key_s, opp_s = key[order], opp[order]
+        uniq, first, counts = np.unique(key_s, return_index=True, return_counts=True)
+        if np.any(counts > 2):
+            k = uniq[np.argmax(counts > 2)]
+            raise ValueError(
+                f"triangles: edge ({k // n}, {k % n}) is shared by {counts.max()} triangles (non-manifold cloth)"
+            )
+        stretch = np.stack([uniq // n, uniq % n], axis=1)
+        interior = first[counts == 2]
+        bend = np.sort(np.stack([opp_s[interior], opp_s[interior + 1]], axis=1), axis=1)
+        if len(bend):
+            bend = np.unique(bend, axis=0)
+
+        q = p0 + v @ r.T
+        mask = _pinned_mask(pinned, q)
+        mass = _lumped_masses(q, t, area2, rho)
+        mass[mask] = 0.0
+        rest_s, k_s, d_s = self._springs(q, stretch, ks, kd, "stretch")
+        springs, rests, kk, dd = [stretch], [rest_s], [k_s], [d_s]
+        if len(bend):
+            rest_b, k_b, d_b = self._springs(q, bend, kb, kd, "bending")
+            springs.append(bend), rests.append(rest_b), kk.append(k_b), dd.append(d_b)
+        return self._commit_particles(
+            q, qd, mass, np.concatenate(springs), np.concatenate(rests), np.concatenate(kk), np.concatenate(dd), t
+        )
+
+    # ---------------------------------------------------------------- rigid bodies
+    def add_rigid_body(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        *,
+        density: float,
+        pos: _Vec3Like = (0.0, 0.0, 0.0),
+        rot=None,
+        velocity: _Vec3Like = (0.0, 0.0, 0.0),
+        angular_velocity: _Vec3Like = (0.0, 0.0, 0.0),
+    ) -> int:
+        """Adds a homogeneous rigid body bounded by a closed, outward-oriented triangle mesh.
+
+        Mass, centre of mass ``c`` and inertia come from :func:`mesh_mass_properties`. The body
+        frame has the mesh's axes and its origin at ``c``: the stored surface vertices are
+        ``v - c`` and the inertia tensor is about ``c`` in mesh axes (not diagonalised). The mesh
+        frame is placed at ``pos`` with orientation ``rot``, so ``body_q = (pos + R c, rot)``.
+        Vertices not used by any triangle are dropped.
+
+        Args:
+            vertices: Surface vertices in the mesh frame [m], float (N, 3).
+            triangles: Closed, 2-manifold, consistently outward (counter-clockwise seen from
+                outside) triangles, int (T, 3).
+            density: [kg/m^3] (> 0).
+            pos: World position of the mesh frame's origin [m], (3,).
+            rot: Quaternion ``(x, y, z, w)``, 3x3 rotation matrix or None (identity).
+            velocity: World linear velocity of the centre of mass [m/s], (3,).
+            angular_velocity: World angular velocity [rad/s], (3,).
+
+        Returns:
+            The body index.
+
+        Raises:
+            ValueError: Bad shapes, NaN/inf, bad indices, degenerate triangles, an open,
+                non-manifold or inconsistently oriented mesh, an inverted (negative volume) or
+                flat mesh, non-positive density, an invalid rotation.
+        """
+        rho = _scalar(density, "density", positive=True)
+        p0 = _vec3(pos, "pos")
+        r, quat = _rotation(rot)
+        lin = _vec3(velocity, "velocity")
+        ang = _vec3(angular_velocity, "angular_velocity")
+        v = _vertices(vertices, "vertices", min_count=4)
+        t = _triangles(triangles, len(v), "triangles")
+        v, t = _compact(v, t)
+        _check_nondegenerate(v, t, "triangles")
+        _check_closed_oriented(t, len(v), "triangles")
+        props = mesh_mass_properties(v, t, rho)
+        diag = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
+        if abs(props.volume) <= VOLUME_RTOL * diag**3:
+            raise ValueError(f"vertices/triangles enclose zero volume ({props.volume:.3g} m^3)")
+        if props.volume < 0.0:
+            raise ValueError(
+                f"triangles are inverted (inward-facing normals, volume {props.volume:.6g} m^3); "
+                "reverse the winding, e.g. triangles[:, ::-1]"
+            )
+        inertia = 0.5 * (props.inertia + props.inertia.T)
+        if np.any(np.linalg.eigvalsh(inertia) <= 0.0):
+            raise ValueError("vertices/triangles give a non-positive-definite inertia tensor")
+
+        body = len(self._body_mass)
+        self._body_q.append(np.concatenate([p0 + r @ props.com, quat]))
+        self._body_qd.append(np.concatenate([ang, lin]))
+        self._body_mass.append(props.mass)
+        self._body_inertia.append(inertia)
+        self._shape_f.append(t + self._shape_vn)
+        self._shape_v.append(v - props.com)
+        self._shape_body.append(np.full(len(v), body, dtype=np.int32))
+        self._shape_vn += len(v)
+        self._components.add("rigid")
+        return body
+
+    # ---------------------------------------------------------------- static colliders
+    def add_static_mesh(
+        self, vertices: np.ndarray, triangles: np.ndarray, *, pos: _Vec3Like = (0.0, 0.0, 0.0), rot=None
+    ) -> int:
+        """Adds a static (immovable) triangle mesh collider; open meshes are fine.
+
+        Args:
+            vertices: [m], float (N, 3), mesh frame; world = ``pos + R @ v``. Unused vertices
+                are dropped.
+            triangles: int (T, 3).
+            pos: Translation [m], (3,).
+            rot: Quaternion ``(x, y, z, w)``, 3x3 rotation matrix or None (identity).
+
+        Returns:
+            The static mesh's index (in order of addition).
+        """
+        v = _vertices(vertices, "vertices")
+        t = _triangles(triangles, len(v), "triangles")
+        p0 = _vec3(pos, "pos")
+        r, _ = _rotation(rot)
+        v, t = _compact(v, t)
+        _check_nondegenerate(v, t, "triangles")
+        self._static_v.append(p0 + v @ r.T)
+        self._static_f.append(t + self._static_vn)
+        self._static_vn += len(v)
+        self._static_mesh_n += 1
+        self._components.add("static")
+        return self._static_mesh_n - 1
+
+    def add_ground_plane(self, normal: _Vec3Like = (0.0, 0.0, 1.0), offset: float = 0.0) -> int:
+        """Adds a static half-space ``dot(n, x) >= offset`` (outside) as a plane only (no mesh).
+
+        Args:
+            normal: Outward normal, (3,), non-zero (normalised here; ``offset`` is taken w.r.t.
+                the unit normal).
+            offset: Signed distance of the plane from the origin along the unit normal [m].
+
+        Returns:
+            The plane's index.
+        """
+        n = _vec3(normal, "normal")
+        length = np.linalg.norm(n)
+        if not length > 0.0:
+            raise ValueError("normal must be non-zero")
+        d = _scalar(offset, "offset")
+        self._planes.append(np.concatenate([n / length, [d]]))
+        self._components.add("static")
+        return len(self._planes) - 1
+
+    # ---------------------------------------------------------------- finalize
+    @staticmethod
+    def _int(x, name: str, minimum: int = 1) -> int:
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+            raise ValueError(f"{name} must be an integer, got {x!r}")
+        if x < minimum:
+            raise ValueError(f"{name} must be >= {minimum}, got {x}")
+        return int(x)
+
+    def finalize(self, device: str = "cpu", requires_grad: bool = False) -> Model:
+        """Builds the :class:`Model` (float64 Warp arrays on ``device``); the builder is unchanged.
+
+        Empty categories give zero-length arrays (never None). ``requires_grad`` is set on the
+        float arrays (positions, velocities, masses, spring parameters, body poses/twists).
+
+        Args:
+            device: Warp device, e.g. ``"cpu"`` or ``"cuda:0"``.
+            requires_grad: Allocate gradients for the float arrays.
+
+        Returns:
+            The model.
+        """
+        from collision.roots import _init  # the project's shared, quiet wp.init()
+
+        _init()
+
+        def cat(chunks, shape, dtype=np.float64):
+            return np.concatenate(chunks).astype(dtype) if chunks else np.zeros(shape, dtype=dtype)
+
+        def arr(a, dtype, grad=False):
+            return wp.array(a, dtype=dtype, device=device, requires_grad=grad and requires_grad)
+
+        mass = cat(self._particle_mass, (0,))
+        inv_mass = np.divide(1.0, mass, out=np.zeros_like(mass), where=mass > 0.0)
+        body_mass = np.asarray(self._body_mass, dtype=np.float64)
+        body_inertia = np.asarray(self._body_inertia, dtype=np.float64).reshape(-1, 3, 3)
+        body_inv_inertia = np.linalg.inv(body_inertia) if len(body_inertia) else body_inertia.copy()
+        body_inv_inertia = 0.5 * (body_inv_inertia + body_inv_inertia.transpose(0, 2, 1))
+
+        return Model(
+            device=str(device),
+            components=frozenset(self._components),
+            gravity=self._gravity.copy(),
+            particle_count=self._particle_n,
+            particle_q=arr(cat(self._particle_q, (0, 3)), wp.vec3d, True),
+            particle_qd=arr(cat(self._particle_qd, (0, 3)), wp.vec3d, True),
+            particle_mass=arr(mass, wp.float64, True),
+            particle_inv_mass=arr(inv_mass, wp.float64, True),
+            spring_count=self._spring_n,
+            spring_indices=arr(cat(self._spring_idx, (0, 2), np.int32), wp.int32),
+            spring_rest_length=arr(cat(self._spring_rest, (0,)), wp.float64, True),
+            spring_stiffness=arr(cat(self._spring_k, (0,)), wp.float64, True),
+            spring_damping=arr(cat(self._spring_d, (0,)), wp.float64, True),
+            tri_count=self._tri_n,
+            tri_indices=arr(cat(self._tris, (0, 3), np.int32), wp.int32),
+            body_count=len(self._body_mass),
+            body_q=arr(np.asarray(self._body_q, dtype=np.float64).reshape(-1, 7), wp.transformd, True),
+            body_qd=arr(np.asarray(self._body_qd, dtype=np.float64).reshape(-1, 6), wp.spatial_vectord, True),
+            body_mass=arr(body_mass, wp.float64, True),
+            body_inv_mass=arr(1.0 / body_mass if len(body_mass) else body_mass, wp.float64, True),
+            body_inertia=arr(body_inertia, wp.mat33d, True),
+            body_inv_inertia=arr(body_inv_inertia, wp.mat33d, True),
+            shape_vertices=arr(cat(self._shape_v, (0, 3)), wp.vec3d),
+            shape_vertex_body=arr(cat(self._shape_body, (0,), np.int32), wp.int32),
+            shape_faces=arr(cat(self._shape_f, (0, 3), np.int32), wp.int32),
+            static_vertices=arr(cat(self._static_v, (0, 3)), wp.vec3d),
+            static_faces=arr(cat(self._static_f, (0, 3), np.int32), wp.int32),
+            plane_count=len(self._planes),
+            planes=arr(np.asarray(self._planes, dtype=np.float64).reshape(-1, 4), wp.vec4d),
+            restitution=self._restitution,
+            friction=self._friction,
+            thickness=self._thickness,
+        )
