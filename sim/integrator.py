@@ -1,0 +1,245 @@
+"""Semi-implicit Euler stepper: forces + integration, plane contacts, and the collision hook.
+
+One substep of length ``h = dt / substeps`` maps ``s -> s_next``:
+
+1. particles: spring forces into a fresh force array, then ``v- = v + h (f / m + g)`` and the
+   predicted positions ``x0 + h v-`` (pinned particles stay put); bodies: semi-implicit Euler of
+   the centre of mass and the angular-momentum update (``kernels.integrate``). This *predicted*
+   State is a fresh one;
+2. if ``model.plane_count > 0``: particle-vs-plane contact with time-of-impact integration
+   (``kernels.integrate.respond_plane_contacts``), into fresh particle arrays;
+3. if ``self.collision_handler`` is set, it is called as
+   ``collision_handler(state_in, state_out, h)`` where ``state_in`` is the State at the start of
+   the substep and ``state_out`` the predicted end of substep (after the plane contacts): its
+   ``particle_qd`` / ``body_qd`` are the predicted velocities ``v-`` and its positions the
+   predicted positions. The handler must not write into either State's arrays (a tape may have
+   read them); it returns a State of fresh arrays that replaces ``state_out`` (it may reuse
+   arrays it leaves unchanged), or None to keep the prediction;
+4. the result is ``s_next`` (the caller's ``state_out`` on the last substep; copies are tape
+   recorded).
+
+Every intermediate State (and force / contact-index array) is allocated per substep when the input
+State requires gradients (or ``requires_grad=True``), so a ``wp.Tape`` around
+:meth:`SemiImplicitIntegrator.step` can be back-propagated; without gradients two scratch States
+are reused. Kernels are launched only for what the model has: no particle
+kernels when ``particle_count == 0``, no spring kernel without springs, no body kernel when
+``body_count == 0``, no plane kernels without planes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import warp as wp
+
+from kernels.forces import eval_springs
+from kernels.integrate import find_plane_contacts, integrate_bodies, integrate_particles, respond_plane_contacts
+from sim.model import Model, State
+
+CollisionHandler = Callable[[State, State, float], "State | None"]
+
+
+def _requires_grad(state: State) -> bool:
+    return any(a is not None and a.requires_grad for a in (state.particle_q, state.particle_qd, state.body_q, state.body_qd))
+
+
+class SemiImplicitIntegrator:
+    """Forces + semi-implicit Euler integration of a :class:`sim.model.Model`.
+
+    Attributes:
+        model: the Model stepped.
+        collision_handler: optional ``(state_in, state_out, dt) -> State | None`` called per
+            substep after the predicted velocities (see the module docstring); None by default.
+        requires_grad: None (default) allocates fresh intermediate States per substep when the
+            input State requires gradients and reuses scratch States otherwise; True always
+            allocates (e.g. to differentiate w.r.t. model arrays only), False never does.
+    """
+
+    def __init__(self, model: Model, requires_grad: bool | None = None):
+        self.model = model
+        self.requires_grad = requires_grad
+        self.device = model.device
+        self.collision_handler: CollisionHandler | None = None
+        self.gravity = wp.vec3d(*(float(g) for g in np.asarray(model.gravity, dtype=np.float64)))
+
+        self._spring_indices = None
+        if model.particle_count > 0 and model.spring_count > 0:
+            idx = model.spring_indices
+            # the kernel reads a flat (2 S,) view of the (S, 2) pairs (a flat array is accepted too)
+            self._spring_indices = idx if idx.ndim == 1 else idx.flatten()
+        self._body_f = None
+        if model.body_count > 0:
+            # no external body wrenches yet: a constant zero array (never written)
+            self._body_f = wp.zeros(model.body_count, dtype=wp.spatial_vectord, device=self.device)
+        self._scratch: list[State] = []
+        self._scratch_forces = None
+        self._scratch_plane_index = None
+
+    # ------------------------------------------------------------------ allocation
+    def _new_state(self, requires_grad: bool) -> State:
+        m, d = self.model, self.device
+        return State(
+            particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+            particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+            body_q=wp.zeros(m.body_count, dtype=wp.transformd, device=d, requires_grad=requires_grad),
+            body_qd=wp.zeros(m.body_count, dtype=wp.spatial_vectord, device=d, requires_grad=requires_grad),
+        )
+
+    def _scratch_state(self, k: int) -> State:
+        while len(self._scratch) <= k:
+            self._scratch.append(self._new_state(False))
+        return self._scratch[k]
+
+    def _forces(self, requires_grad: bool):
+        m = self.model
+        if requires_grad:
+            return wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device, requires_grad=True)
+        if self._scratch_forces is None:
+            self._scratch_forces = wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device)
+        else:
+            self._scratch_forces.zero_()
+        return self._scratch_forces
+
+    def _plane_index(self, requires_grad: bool):
+        m = self.model
+        if requires_grad or self._scratch_plane_index is None:
+            idx = wp.empty(m.particle_count, dtype=wp.int32, device=self.device)
+            if not requires_grad:
+                self._scratch_plane_index = idx
+            return idx
+        return self._scratch_plane_index
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, state_in: State, state_out: State, dt: float, substeps: int = 1) -> State:
+        """Advances ``state_in`` by ``dt`` in ``substeps`` equal substeps into ``state_out``.
+
+        ``state_out`` must be distinct from ``state_in`` (arrays of matching sizes, e.g.
+        ``model.state(requires_grad=...)``). Returns ``state_out``.
+        """
+        if substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        if state_out is state_in or state_out.particle_q is state_in.particle_q:
+            raise ValueError("state_out must not alias state_in (the tape needs both)")
+        h = float(dt) / substeps
+        requires_grad = _requires_grad(state_in) if self.requires_grad is None else bool(self.requires_grad)
+        s = state_in
+        for k in range(substeps):
+            if k == substeps - 1:
+                s_next = state_out
+            elif requires_grad:
+                s_next = self._new_state(True)
+            else:
+                s_next = self._scratch_state(k % 2)
+            self._substep(s, s_next, h, requires_grad)
+            s = s_next
+        return state_out
+
+    def _substep(self, s_in: State, s_out: State, h: float, requires_grad: bool) -> None:
+        m, d = self.model, self.device
+        planes = m.particle_count > 0 and m.plane_count > 0
+        handler = self.collision_handler
+
+        # where the prediction goes: straight into s_out unless a collision stage follows
+        if handler is None and not planes:
+            pred = s_out
+        elif handler is None:  # planes only touch particles: bodies go straight to s_out
+            pred = State(
+                particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+                particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+                body_q=s_out.body_q,
+                body_qd=s_out.body_qd,
+            )
+        else:
+            pred = self._new_state(requires_grad)
+
+        hd = wp.float64(h)
+        if m.particle_count > 0:
+            f = self._forces(requires_grad)
+            if self._spring_indices is not None:
+                wp.launch(
+                    eval_springs,
+                    dim=m.spring_count,
+                    inputs=[
+                        s_in.particle_q,
+                        s_in.particle_qd,
+                        self._spring_indices,
+                        m.spring_rest_length,
+                        m.spring_stiffness,
+                        m.spring_damping,
+                    ],
+                    outputs=[f],
+                    device=d,
+                )
+            wp.launch(
+                integrate_particles,
+                dim=m.particle_count,
+                inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, hd],
+                outputs=[pred.particle_q, pred.particle_qd],
+                device=d,
+            )
+        if m.body_count > 0:
+            wp.launch(
+                integrate_bodies,
+                dim=m.body_count,
+                inputs=[
+                    s_in.body_q,
+                    s_in.body_qd,
+                    self._body_f,
+                    m.body_inv_mass,
+                    m.body_inertia,
+                    m.body_inv_inertia,
+                    self.gravity,
+                    hd,
+                ],
+                outputs=[pred.body_q, pred.body_qd],
+                device=d,
+            )
+        if pred is s_out:
+            return
+
+        cur = pred
+        if planes:
+            if handler is None:
+                out = s_out
+            else:
+                out = State(
+                    particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+                    particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
+                    body_q=pred.body_q,
+                    body_qd=pred.body_qd,
+                )
+            self.collide_planes(s_in.particle_q, pred.particle_qd, out.particle_q, out.particle_qd, h, requires_grad)
+            cur = out
+        if handler is not None:
+            result = handler(s_in, cur, h)
+            if result is not None:
+                cur = result
+        for name in ("particle_q", "particle_qd", "body_q", "body_qd"):
+            src, dst = getattr(cur, name), getattr(s_out, name)
+            if src is not dst and src.shape[0] > 0:
+                wp.copy(dst, src)
+
+    def collide_planes(self, x0, v, x_out, v_out, h: float, requires_grad: bool = True) -> None:
+        """Particle-vs-plane time-of-impact integration over one substep ``h``: from start
+        positions ``x0`` and predicted velocities ``v`` into ``x_out``, ``v_out`` (fresh arrays).
+        Which plane each particle hits is chosen outside the tape; the response is recorded."""
+        m, d = self.model, self.device
+        idx = self._plane_index(requires_grad)
+        hd = wp.float64(h)
+        thickness = wp.float64(m.thickness)
+        wp.launch(
+            find_plane_contacts,
+            dim=m.particle_count,
+            inputs=[x0, v, m.particle_inv_mass, m.planes, int(m.plane_count), thickness, hd],
+            outputs=[idx],
+            device=d,
+            record_tape=False,
+        )
+        wp.launch(
+            respond_plane_contacts,
+            dim=m.particle_count,
+            inputs=[x0, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness, hd],
+            outputs=[x_out, v_out],
+            device=d,
+        )
