@@ -11,7 +11,11 @@ Conventions (see ``docs/design.md``, section "rerun conventions"):
 * a default blueprint made of time-series views (see :func:`time_series_blueprint`);
 * atomic files: the stream writes to a hidden temporary file next to the requested path, which is
   renamed onto the target only when the ``with`` block exits without an exception. On error the
-  temporary file is removed, so no half-written ``.rrd`` is ever left behind.
+  temporary file is removed, so no half-written ``.rrd`` is ever left behind. With
+  ``keep_partial=True`` (used by :class:`sim.recorder.SimRecorder`) an exception instead flushes the
+  stream and renames the file too, so the target holds a complete, readable recording of
+  everything logged before the error. Either way the target is only ever replaced by a finished
+  file; a hard kill (SIGKILL, power loss) leaves the target untouched and a stale temporary file.
 
 Example:
     >>> with RerunLogger("out.rrd", recording_name="demo") as log:  # doctest: +SKIP
@@ -38,14 +42,17 @@ class RerunLogger:
     """Owns one rerun recording written atomically to ``path``.
 
     Use it as a context manager. Inside the block, data goes to ``<dir>/.<name>.<pid>.tmp``; on a
-    clean exit the temporary file is renamed to ``path``; on an exception it is deleted and the
-    exception propagates.
+    clean exit the temporary file is renamed to ``path``; on an exception it is deleted (or, with
+    ``keep_partial``, renamed to ``path`` as well) and the exception propagates.
 
     Args:
         path: Destination ``.rrd`` file. Its parent folder must exist.
         application_id: Rerun application id.
         recording_name: Human-readable recording name (also part of the deterministic recording id).
         seed: Seed of the run (part of the deterministic recording id).
+        keep_partial: On an exception inside the block, keep what was logged so far as ``path``
+            (flushed, complete and readable) instead of deleting it. If flushing itself fails the
+            temporary file is deleted either way.
     """
 
     def __init__(
@@ -55,6 +62,7 @@ class RerunLogger:
         application_id: str = "tunnelsim",
         recording_name: str = "tunnelsim",
         seed: int = 0,
+        keep_partial: bool = False,
     ) -> None:
         self.path = Path(path)
         if not self.path.parent.is_dir():
@@ -63,6 +71,7 @@ class RerunLogger:
         self.application_id = application_id
         self.recording_name = recording_name
         self.seed = int(seed)
+        self.keep_partial = bool(keep_partial)
         self.rec: rr.RecordingStream | None = None
 
     # ------------------------------------------------------------------ context management
@@ -87,12 +96,15 @@ class RerunLogger:
         tb: TracebackType | None,
     ) -> None:
         rec, self.rec = self.rec, None
+        flushed = False
         try:
             if rec is not None:
                 rec.flush()
                 rec.disconnect()
+            flushed = True
         finally:
-            if exc_type is None and self.tmp_path.exists():
+            keep = exc_type is None or (self.keep_partial and flushed)
+            if keep and self.tmp_path.exists():
                 os.replace(self.tmp_path, self.path)
             else:
                 self.tmp_path.unlink(missing_ok=True)
