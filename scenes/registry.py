@@ -28,6 +28,9 @@ import numpy as np
 SCENES: dict[str, str] = {
     "paper_quadratic": "scenes.paper_quadratic",
     "paper_cubic": "scenes.paper_cubic",
+    "cloth_drop": "scenes.cloth_drop",
+    "rigid_toss": "scenes.rigid_toss",
+    "cloth_rigid": "scenes.cloth_rigid",
 }
 """Scene name -> module path."""
 

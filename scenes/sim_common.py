@@ -1,0 +1,267 @@
+"""Shared runner of the simulation scenes (``cloth_drop``, ``rigid_toss``, ``cloth_rigid``).
+
+A simulation scene module defines ``build(builder, args)``, which adds its cloth, bodies and
+colliders to a :class:`sim.builder.ModelBuilder` (the builder records the components the scene
+needs: ``cloth``, ``rigid``, ``static``), and delegates ``add_arguments`` / ``run`` to this module.
+
+Per step (``dt`` split into ``substeps``): :class:`sim.integrator.SemiImplicitIntegrator` with an
+:class:`sim.collision_response.ImpulseCollisionHandler` as its collision hook, then one frame
+logged with :meth:`sim.recorder.SimRecorder.on_logger` (particle positions, body poses, the
+step's contacts gathered over all its substeps, metrics ``energy/{kinetic,potential,total}``,
+``contacts`` and ``penetrations``). Penetrations come from the independent
+:class:`sim.penetration.PenetrationChecker`, evaluated on every step's end state.
+
+Energy: kinetic (particles ``m v^2 / 2``, bodies ``m v^2 / 2 + w^T I_world w / 2``) plus
+potential (gravity ``-m g . x`` with the origin as reference, springs ``k (l - l0)^2 / 2``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from scenes.registry import positive_float, positive_int
+
+PRECISIONS = ("float64",)
+"""The simulator is float64 throughout."""
+SUPPORTS_STEPS = True
+DEFAULT_STEPS = 120
+DEFAULT_DT = 1.0 / 60.0
+DEFAULT_SUBSTEPS = 8
+DEFAULT_DEVICE = "cpu"
+
+BuildFn = Callable[[Any, argparse.Namespace], None]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of every simulation scene: ``--dt``, ``--substeps``, ``--device``."""
+    parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT,
+                        help=f"frame time step [s] (default 1/60 = {DEFAULT_DT:.6g})")
+    parser.add_argument("--substeps", type=positive_int, default=DEFAULT_SUBSTEPS,
+                        help=f"substeps per frame (>= 1; default {DEFAULT_SUBSTEPS})")
+    parser.add_argument("--device", default=DEFAULT_DEVICE,
+                        help=f"Warp device, e.g. cpu or cuda:0 (default {DEFAULT_DEVICE})")
+
+
+def default_args(**overrides: Any) -> argparse.Namespace:
+    """A namespace with the CLI defaults (for in-process runs), updated by ``overrides``."""
+    ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
+                            substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE)
+    for k, v in overrides.items():
+        setattr(ns, k, v)
+    return ns
+
+
+def build_model(build: BuildFn, args: argparse.Namespace):
+    """Runs the scene's ``build`` on a fresh builder and finalises it on ``args.device``."""
+    from sim.builder import ModelBuilder
+
+    builder = ModelBuilder()
+    build(builder, args)
+    return builder.finalize(getattr(args, "device", DEFAULT_DEVICE))
+
+
+class EnergyMeter:
+    """Kinetic and potential energy of a model's states (numpy, float64)."""
+
+    def __init__(self, model) -> None:
+        self.g = np.asarray(model.gravity, dtype=np.float64)
+        P, B = int(model.particle_count), int(model.body_count)
+        self.pm = model.particle_mass.numpy() if P else np.zeros(0)
+        if model.spring_count and P:
+            self.si = model.spring_indices.numpy().reshape(-1, 2)
+            self.rest = model.spring_rest_length.numpy()
+            self.k = model.spring_stiffness.numpy()
+        else:
+            self.si, self.rest, self.k = np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
+        self.bm = model.body_mass.numpy() if B else np.zeros(0)
+        self.bI = model.body_inertia.numpy().reshape(-1, 3, 3) if B else np.zeros((0, 3, 3))
+
+    def __call__(self, state) -> tuple[float, float]:
+        """``(kinetic, potential)`` [J] of ``state``."""
+        from sim.collision_response import _quat_to_matrix
+
+        x = state.particle_q.numpy().reshape(-1, 3)
+        v = state.particle_qd.numpy().reshape(-1, 3)
+        kin = 0.5 * float(np.sum(self.pm * np.sum(v * v, axis=1)))
+        pot = -float(np.sum(self.pm * (x @ self.g)))
+        if len(self.k):
+            length = np.linalg.norm(x[self.si[:, 1]] - x[self.si[:, 0]], axis=1)
+            pot += 0.5 * float(np.sum(self.k * (length - self.rest) ** 2))
+        if len(self.bm):
+            bq = state.body_q.numpy().reshape(-1, 7)
+            bv = state.body_qd.numpy().reshape(-1, 6)
+            w, lin = bv[:, :3], bv[:, 3:]
+            r = _quat_to_matrix(bq[:, 3:] / np.linalg.norm(bq[:, 3:], axis=1, keepdims=True))
+            iw = r @ self.bI @ np.swapaxes(r, 1, 2)
+            kin += 0.5 * float(np.sum(self.bm * np.sum(lin * lin, axis=1)))
+            kin += 0.5 * float(np.einsum("bi,bij,bj->", w, iw, w))
+            pot -= float(np.sum(self.bm * (bq[:, :3] @ self.g)))
+        return kin, pot
+
+
+class ContactGatherer:
+    """Wraps an :class:`ImpulseCollisionHandler` to collect the contacts of all substeps of a step
+    (the handler itself keeps only its last call's)."""
+
+    def __init__(self, handler) -> None:
+        self.handler = handler
+        self.reset()
+
+    def reset(self) -> None:
+        self.points: list[np.ndarray] = []
+        self.normals: list[np.ndarray] = []
+        self.times: list[np.ndarray] = []
+        self._elapsed = 0.0
+
+    def __call__(self, state_in, state_pred, h: float):
+        out = self.handler(state_in, state_pred, h)
+        if len(self.handler.last_contacts):
+            self.points.append(np.asarray(self.handler.last_contacts, dtype=np.float64).reshape(-1, 3))
+            self.normals.append(np.asarray(self.handler.last_normals, dtype=np.float64).reshape(-1, 3))
+            # times of impact in seconds from the start of the step
+            self.times.append(self._elapsed + np.asarray(self.handler.last_times, dtype=np.float64).reshape(-1))
+        self._elapsed += h
+        return out
+
+    def contacts(self) -> dict[str, np.ndarray]:
+        if not self.points:
+            return {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3)), "toi": np.zeros(0)}
+        return {"points": np.concatenate(self.points), "normals": np.concatenate(self.normals),
+                "toi": np.concatenate(self.times)}
+
+
+def simulate(
+    build: BuildFn,
+    args: argparse.Namespace,
+    log: Any | None = None,
+    *,
+    name: str = "sim",
+    progress: bool = True,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Builds and runs a simulation scene.
+
+    Args:
+        build: ``build(builder, args)`` of the scene.
+        args: Parsed options (``steps`` None -> :data:`DEFAULT_STEPS`, ``dt``, ``substeps``,
+            ``device``).
+        log: An open :class:`sim.logging.RerunLogger` to record into, or None (no recording).
+        name: Scene name (progress bar label, summary).
+        progress: Show a tqdm bar on stderr (only when stderr is a terminal).
+
+    Returns:
+        ``(summary, final_state)``: the JSON summary and the final state as numpy arrays.
+    """
+    from tqdm import tqdm
+
+    from sim.collision_response import ImpulseCollisionHandler
+    from sim.integrator import SemiImplicitIntegrator
+    from sim.penetration import PenetrationChecker
+
+    steps = int(args.steps) if getattr(args, "steps", None) is not None else DEFAULT_STEPS
+    dt = float(getattr(args, "dt", DEFAULT_DT))
+    substeps = int(getattr(args, "substeps", DEFAULT_SUBSTEPS))
+
+    model = build_model(build, args)
+    integrator = SemiImplicitIntegrator(model)
+    handler = ImpulseCollisionHandler(model)
+    gatherer = ContactGatherer(handler)
+    integrator.collision_handler = gatherer
+    checker = PenetrationChecker(model)
+    energy = EnergyMeter(model)
+    recorder = None
+    if log is not None:
+        from sim.recorder import SimRecorder
+
+        recorder = SimRecorder.on_logger(log, model)
+
+    state, nxt = model.state(), model.state()
+    k0, p0 = energy(state)
+    e0 = k0 + p0
+    rep0 = checker.check(state)
+    if rep0.count:
+        raise RuntimeError(f"{name}: the initial state already has {rep0.count} penetrations")
+    e_max = e0
+    total_contacts = 0
+    max_pen = 0
+    max_depth = 0.0
+    pen_frames = 0
+    finite = True
+    step_times = []
+    start = time.perf_counter()
+    bar = tqdm(total=steps, desc=name, unit="step", file=sys.stderr, disable=None if progress else True, leave=False)
+    try:
+        for k in range(steps):
+            t0 = time.perf_counter()
+            gatherer.reset()
+            integrator.step(state, nxt, dt, substeps)
+            state, nxt = nxt, state
+            step_times.append(time.perf_counter() - t0)
+            contacts = gatherer.contacts()
+            n_contacts = len(contacts["points"])
+            total_contacts += n_contacts
+            kin, pot = energy(state)
+            e = kin + pot
+            finite &= math.isfinite(e)
+            e_max = max(e_max, e) if math.isfinite(e) else e_max
+            rep = checker.check(state)
+            max_pen = max(max_pen, rep.count)
+            max_depth = max(max_depth, rep.max_depth)
+            pen_frames += rep.count > 0
+            if recorder is not None:
+                recorder.record(
+                    k + 1, (k + 1) * dt, state,
+                    contacts=contacts if n_contacts else None,
+                    metrics={"energy/kinetic": kin, "energy/potential": pot, "energy/total": e,
+                             "contacts": n_contacts, "penetrations": rep.count},
+                )
+            bar.update(1)
+    except BaseException as exc:
+        if recorder is not None:
+            recorder.close(type(exc), exc, exc.__traceback__)
+        raise
+    finally:
+        bar.close()
+    if recorder is not None:
+        recorder.close()
+    wall = time.perf_counter() - start
+    kin, pot = energy(state)
+    e_end = kin + pot
+    scale = abs(e0) if abs(e0) > 0 else 1.0
+    final = state.numpy()
+    summary = {
+        "scene": name,
+        "steps": steps,
+        "dt": dt,
+        "substeps": substeps,
+        "device": str(model.device),
+        "components": sorted(model.components),
+        "particles": int(model.particle_count),
+        "bodies": int(model.body_count),
+        "wall_seconds": round(wall, 4),
+        "steps_per_second": steps / wall if wall > 0 else None,
+        "step_ms_mean": 1e3 * float(np.mean(step_times)) if step_times else 0.0,
+        "contacts": int(total_contacts),
+        "penetrations": int(max_pen),
+        "penetration_frames": int(pen_frames),
+        "max_penetration_depth": float(max_depth),
+        "energy_initial": e0,
+        "energy_final": e_end,
+        "energy_drift": (e_end - e0) / scale,
+        "energy_max_ratio": e_max / e0 if e0 > 0 else None,
+        "energy_finite": bool(finite and math.isfinite(e_end)),
+        "failsafe_count": int(handler.failsafe_count),
+    }
+    return summary, final
+
+
+def run_scene(build: BuildFn, args: argparse.Namespace, log: Any, name: str) -> dict[str, Any]:
+    """The ``run(args, log)`` of a simulation scene: :func:`simulate` with recording."""
+    summary, _ = simulate(build, args, log, name=name)
+    return summary

@@ -1,0 +1,132 @@
+"""Simulation scenes ``cloth_drop``, ``rigid_toss``, ``cloth_rigid``: in-process runs and the CLI.
+
+Each scene runs in-process twice for :data:`STEPS` steps (no recording): the summary's fields,
+zero penetrations from the independent checker, finite energy, contacts, and bit-identical final
+states (determinism). Each also runs once through ``python -m scenes NAME --steps 10`` into a
+temporary ``.rrd``: exactly one JSON line on stdout with the summary fields, and the recording
+reads back with ``rerun.chunk.RrdReader`` holding ``/world`` entities and per-frame metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenes import cloth_drop, cloth_rigid, rigid_toss, sim_common
+
+REPO = Path(__file__).resolve().parents[1]
+STEPS = 20
+"""In-process steps: enough for first contact in every scene (cloth_drop touches the sphere
+after ~15 steps, the ball reaches the cloth after ~4, box B rests on the ground from step 1)."""
+CLI_STEPS = 10
+SCENES = {"cloth_drop": cloth_drop, "rigid_toss": rigid_toss, "cloth_rigid": cloth_rigid}
+SUMMARY_FIELDS = (
+    "steps", "dt", "substeps", "wall_seconds", "steps_per_second", "contacts", "penetrations",
+    "max_penetration_depth", "energy_drift", "energy_max_ratio", "failsafe_count",
+)
+COMPONENTS = {
+    "cloth_drop": ["cloth", "static"],
+    "rigid_toss": ["rigid", "static"],
+    "cloth_rigid": ["cloth", "rigid"],
+}
+
+
+def simulate(name: str, steps: int = STEPS):
+    module = SCENES[name]
+    return sim_common.simulate(module.build, sim_common.default_args(steps=steps), None, name=name, progress=False)
+
+
+@pytest.fixture(scope="module", params=sorted(SCENES))
+def run_once(request):
+    name = request.param
+    summary, final = simulate(name)
+    return name, summary, final
+
+
+def test_summary_fields_and_no_penetrations(run_once):
+    name, s, _ = run_once
+    for key in SUMMARY_FIELDS:
+        assert key in s, key
+    assert s["steps"] == STEPS
+    assert s["dt"] == pytest.approx(1.0 / 60.0)
+    assert s["substeps"] == 8
+    assert s["components"] == COMPONENTS[name]
+    assert s["penetrations"] == 0
+    assert s["max_penetration_depth"] == 0.0
+    assert s["contacts"] > 0
+    assert s["energy_finite"]
+    assert math.isfinite(s["energy_drift"]) and math.isfinite(s["energy_final"])
+    # no energy from nowhere beyond a modest margin (impulses and friction only dissipate)
+    assert s["energy_max_ratio"] < 1.5
+    json.dumps(s, allow_nan=False)
+
+
+def test_deterministic(run_once):
+    name, _, final = run_once
+    _, again = simulate(name)
+    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+        a, b = np.asarray(final[key]), np.asarray(again[key])
+        assert a.shape == b.shape
+        assert np.all(np.isfinite(a))
+        assert a.tobytes() == b.tobytes(), f"{name}: {key} differs between two runs"
+
+
+def read_rrd(path: Path) -> dict[str, int]:
+    """Rows per entity path (static and temporal together)."""
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return rows
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_cli(name, tmp_path):
+    out = tmp_path / f"{name}.rrd"
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "scenes", name, "--out", str(out), "--steps", str(CLI_STEPS)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 1, proc.stdout[:500]
+    s = json.loads(lines[0])
+    for key in (*SUMMARY_FIELDS, "wall_time_s", "out"):
+        assert key in s, key
+    assert s["steps"] == CLI_STEPS
+    assert s["penetrations"] == 0
+    assert s["energy_finite"]
+    assert out.is_file()
+    rows = read_rrd(out)
+    world = [e for e in rows if e.startswith("/world")]
+    assert world, sorted(rows)
+    if name != "rigid_toss":
+        assert rows.get("/world/cloth", 0) >= CLI_STEPS
+    if name != "cloth_drop":
+        assert rows.get("/world/bodies/0", 0) >= CLI_STEPS
+    if name != "cloth_rigid":
+        assert any(e.startswith("/world/static/") for e in rows)
+    assert rows.get("/metrics/energy/total", 0) == CLI_STEPS
+    assert rows.get("/metrics/penetrations", 0) == CLI_STEPS
+
+
+def test_cli_options():
+    """--dt/--substeps/--device parse with the documented defaults; --precision float32 is refused."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    cloth_drop.add_arguments(parser)
+    args = parser.parse_args([])
+    assert args.dt == pytest.approx(1 / 60) and args.substeps == 8 and args.device == "cpu"
+    assert cloth_drop.SUPPORTS_STEPS and cloth_drop.PRECISIONS == ("float64",)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--substeps", "0"])
