@@ -281,12 +281,14 @@ class ImpulseCollisionHandler:
         n[flip] *= -1
         return n, w
 
-    def _effective_inverse_mass(self, vtx, n):
-        """Per collidable vertex the inverse mass seen by an impulse along n (0 for static)."""
-        inv = np.zeros(len(vtx))
-        is_p = vtx < self.shape_offset
-        inv[is_p] = self.particle_inv_mass[vtx[is_p]]
-        return inv
+    def _lever_arms(self, vtx, body_q):
+        """For rigid-surface vertices ``vtx``: their bodies, world lever arms from the centre of
+        mass, and the bodies' world inverse inertia tensors R I^-1 R^T."""
+        sv = vtx - self.shape_offset
+        b = self.shape_body[sv]
+        rmat = _quat_to_matrix(body_q[b, 3:7])
+        r = np.einsum("nij,nj->ni", rmat, self.shape_vertices[sv])
+        return b, r, rmat @ self.body_inv_inertia[b] @ np.swapaxes(rmat, 1, 2)
 
     def _respond(self, idx, w, n, tois, x0p, vp, bq0, bq1, bv, x1p, h):
         m = self.model
@@ -305,11 +307,7 @@ class ImpulseCollisionHandler:
             k_eff[is_p] += w[is_p, k] ** 2 * self.particle_inv_mass[vtx[is_p]]
             is_s = (vtx >= self.shape_offset) & (vtx < self.static_offset)
             if is_s.any():
-                sv = vtx[is_s] - self.shape_offset
-                b = self.shape_body[sv]
-                rmat = _quat_to_matrix(bq_now[b, 3:7])
-                r = np.einsum("nij,nj->ni", rmat, self.shape_vertices[sv])
-                inv_i = rmat @ self.body_inv_inertia[b] @ np.swapaxes(rmat, 1, 2)
+                b, r, inv_i = self._lever_arms(vtx[is_s], bq_now)
                 rn = np.cross(r, n[is_s])
                 k_eff[is_s] += w[is_s, k] ** 2 * (self.body_inv_mass[b] + np.einsum("ni,nij,nj->n", rn, inv_i, rn))
         ok = approaching & (k_eff > 0)
@@ -345,11 +343,7 @@ class ImpulseCollisionHandler:
             np.minimum.at(t_p, vtx[is_p], tois[is_p])
             is_s = (vtx >= self.shape_offset) & (vtx < self.static_offset)
             if is_s.any():
-                sv = vtx[is_s] - self.shape_offset
-                b = self.shape_body[sv]
-                rmat = _quat_to_matrix(bq_now[b, 3:7])
-                r = np.einsum("nij,nj->ni", rmat, self.shape_vertices[sv])
-                inv_i = rmat @ self.body_inv_inertia[b] @ np.swapaxes(rmat, 1, 2)
+                b, r, inv_i = self._lever_arms(vtx[is_s], bq_now)
                 jb = w[is_s, k][:, None] * impulse[is_s]
                 np.add.at(dbv[:, 3:6], b, self.body_inv_mass[b][:, None] * jb)
                 np.add.at(dbv[:, 0:3], b, np.einsum("nij,nj->ni", inv_i, np.cross(r, jb)))
