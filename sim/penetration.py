@@ -56,6 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from kernels import penetration as _k
 from sim.model import Model, State
 
 __all__ = [
@@ -173,89 +174,15 @@ def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------------------------
-# Warp float64 kernels (one thread per (point, solid) query, brute force over the solid's faces)
+# The winding-number / distance kernel lives in kernels/penetration.py (one thread per (point,
+# solid) query, brute force over the solid's faces)
 # --------------------------------------------------------------------------------------------
-
-
-@wp.func
-def _closest_point_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
-    """Closest point of triangle ``abc`` to ``p`` (Ericson, Real-Time Collision Detection 5.1.5)."""
-    zero = wp.float64(0.0)
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    if d1 <= zero and d2 <= zero:
-        return a
-    bp = p - b
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= zero and d4 <= d3:
-        return b
-    vc = d1 * d4 - d3 * d2
-    if vc <= zero and d1 >= zero and d3 <= zero:
-        return a + ab * (d1 / (d1 - d3))
-    cp = p - c
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= zero and d5 <= d6:
-        return c
-    vb = d5 * d2 - d1 * d6
-    if vb <= zero and d2 >= zero and d6 <= zero:
-        return a + ac * (d2 / (d2 - d6))
-    va = d3 * d6 - d5 * d4
-    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
-        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
-    denom = wp.float64(1.0) / (va + vb + vc)
-    return a + ab * (vb * denom) + ac * (vc * denom)
-
-
-@wp.kernel
-def _winding_distance_kernel(
-    x: wp.array(dtype=wp.vec3d),
-    query_point: wp.array(dtype=wp.int32),
-    query_solid: wp.array(dtype=wp.int32),
-    faces: wp.array(dtype=wp.vec3i),
-    solid_face_start: wp.array(dtype=wp.int32),
-    winding: wp.array(dtype=wp.float64),
-    distance: wp.array(dtype=wp.float64),
-):
-    """Winding number of point ``x[query_point[i]]`` w.r.t. solid ``query_solid[i]`` (faces
-    ``solid_face_start[s] .. solid_face_start[s + 1]``, global vertex ids) and, where it exceeds
-    1/2, the distance to the solid's surface (else +inf)."""
-    i = wp.tid()
-    p = x[query_point[i]]
-    s = query_solid[i]
-    f0 = solid_face_start[s]
-    f1 = solid_face_start[s + 1]
-    total = wp.float64(0.0)
-    for f in range(f0, f1):
-        t = faces[f]
-        a = x[t[0]] - p
-        b = x[t[1]] - p
-        c = x[t[2]] - p
-        la = wp.length(a)
-        lb = wp.length(b)
-        lc = wp.length(c)
-        det = wp.dot(a, wp.cross(b, c))
-        den = la * lb * lc + wp.dot(a, b) * lc + wp.dot(b, c) * la + wp.dot(c, a) * lb
-        total += wp.atan2(det, den)
-    w = total / wp.float64(2.0 * 3.141592653589793)
-    winding[i] = w
-    best = wp.float64(1.0e300)
-    if w > wp.float64(0.5):
-        for f in range(f0, f1):
-            t = faces[f]
-            q = _closest_point_triangle(p, x[t[0]], x[t[1]], x[t[2]])
-            best = wp.min(best, wp.length(p - q))
-    distance[i] = best
 
 
 def _winding_and_distance(
     x: np.ndarray, query_point: np.ndarray, query_solid: np.ndarray, faces: np.ndarray, face_start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Runs :func:`_winding_distance_kernel` on the CPU; returns (winding, distance) numpy."""
+    """Runs :func:`_k.winding_distance_kernel` on the CPU; returns (winding, distance) numpy."""
     from collision.roots import _init
 
     _init()
@@ -268,7 +195,7 @@ def _winding_and_distance(
     fs = wp.array(face_start.astype(np.int32), dtype=wp.int32, device=dev)
     w = wp.empty(n, dtype=wp.float64, device=dev)
     d = wp.empty(n, dtype=wp.float64, device=dev)
-    wp.launch(_winding_distance_kernel, dim=n, inputs=[xa, qp, qs, fa, fs], outputs=[w, d], device=dev)
+    wp.launch(_k.winding_distance_kernel, dim=n, inputs=[xa, qp, qs, fa, fs], outputs=[w, d], device=dev)
     return w.numpy(), d.numpy()
 
 
