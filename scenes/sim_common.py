@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from scenes.registry import positive_float, positive_int
+from sim.rotation import quat_to_matrix
 
 PRECISIONS = ("float64",)
 """The simulator is float64 throughout."""
@@ -85,8 +86,6 @@ class EnergyMeter:
 
     def __call__(self, state) -> tuple[float, float]:
         """``(kinetic, potential)`` [J] of ``state``."""
-        from sim.collision_response import _quat_to_matrix
-
         x = state.particle_q.numpy().reshape(-1, 3)
         v = state.particle_qd.numpy().reshape(-1, 3)
         kin = 0.5 * float(np.sum(self.pm * np.sum(v * v, axis=1)))
@@ -98,7 +97,7 @@ class EnergyMeter:
             bq = state.body_q.numpy().reshape(-1, 7)
             bv = state.body_qd.numpy().reshape(-1, 6)
             w, lin = bv[:, :3], bv[:, 3:]
-            r = _quat_to_matrix(bq[:, 3:] / np.linalg.norm(bq[:, 3:], axis=1, keepdims=True))
+            r = quat_to_matrix(bq[:, 3:] / np.linalg.norm(bq[:, 3:], axis=1, keepdims=True))
             iw = r @ self.bI @ np.swapaxes(r, 1, 2)
             kin += 0.5 * float(np.sum(self.bm * np.sum(lin * lin, axis=1)))
             kin += 0.5 * float(np.einsum("bi,bij,bj->", w, iw, w))

@@ -28,6 +28,7 @@ import numpy as np
 import warp as wp
 
 from sim.model import COMPONENTS, Model
+from sim.rotation import quat_to_matrix
 
 __all__ = ["MassProperties", "ModelBuilder", "mesh_mass_properties", "quat_from_matrix", "quat_to_matrix"]
 
@@ -140,18 +141,6 @@ def _compact(v: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return v, t
     new = np.cumsum(used) - 1
     return v[used], new[t]
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of a unit quaternion ``(x, y, z, w)``."""
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def quat_from_matrix(r: np.ndarray) -> np.ndarray:

@@ -34,42 +34,7 @@ import warp as wp
 
 from collision.ccd import mesh_ccd
 from sim.model import Model, State
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from quaternions (..., 4) in (x, y, z, w) order."""
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        -1,
-    )
-
-
-def _turn(q: np.ndarray, omega: np.ndarray, duration: np.ndarray) -> np.ndarray:
-    """Quaternions q turned by the world angular velocity omega for ``duration`` (exact rotation)."""
-    angle = np.linalg.norm(omega, axis=-1) * duration
-    axis = np.divide(omega, np.linalg.norm(omega, axis=-1, keepdims=True), out=np.zeros_like(omega), where=np.linalg.norm(omega, axis=-1, keepdims=True) > 0)
-    dq = np.concatenate([axis * np.sin(angle / 2)[..., None], np.cos(angle / 2)[..., None]], -1)
-    out = _quat_multiply(dq, q)
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+from sim.rotation import quat_to_matrix, quat_turn
 
 
 class ImpulseCollisionHandler:
@@ -139,7 +104,7 @@ class ImpulseCollisionHandler:
             parts.append(particle_q[: self.n_particles])
         if self.n_shape:
             pos, quat = body_q[:, :3], body_q[:, 3:7]
-            rot = _quat_to_matrix(quat)[self.shape_body]
+            rot = quat_to_matrix(quat)[self.shape_body]
             parts.append(pos[self.shape_body] + np.einsum("nij,nj->ni", rot, self.shape_vertices))
         if len(self.static_vertices):
             parts.append(self.static_vertices)
@@ -156,7 +121,7 @@ class ImpulseCollisionHandler:
         if is_s.any():
             sv = idx[is_s] - self.shape_offset
             b = self.shape_body[sv]
-            r = _quat_to_matrix(bq[b, 3:7]) @ self.shape_vertices[sv][..., None]
+            r = quat_to_matrix(bq[b, 3:7]) @ self.shape_vertices[sv][..., None]
             vel[is_s] = bv[b, 3:6] + np.cross(bv[b, :3], r[..., 0])
         return vel
 
@@ -286,7 +251,7 @@ class ImpulseCollisionHandler:
         mass, and the bodies' world inverse inertia tensors R I^-1 R^T."""
         sv = vtx - self.shape_offset
         b = self.shape_body[sv]
-        rmat = _quat_to_matrix(body_q[b, 3:7])
+        rmat = quat_to_matrix(body_q[b, 3:7])
         r = np.einsum("nij,nj->ni", rmat, self.shape_vertices[sv])
         return b, r, rmat @ self.body_inv_inertia[b] @ np.swapaxes(rmat, 1, 2)
 
@@ -364,8 +329,8 @@ class ImpulseCollisionHandler:
             v_minus = bv[hit_b].copy()
             v_plus = v_minus + dbv[hit_b]
             bq1[hit_b, :3] = bq0[hit_b, :3] + ts[:, None] * v_minus[:, 3:6] + (h - ts)[:, None] * v_plus[:, 3:6]
-            q_mid = _turn(bq0[hit_b, 3:7], v_minus[:, :3], ts)
-            bq1[hit_b, 3:7] = _turn(q_mid, v_plus[:, :3], h - ts)
+            q_mid = quat_turn(bq0[hit_b, 3:7], v_minus[:, :3], ts)
+            bq1[hit_b, 3:7] = quat_turn(q_mid, v_plus[:, :3], h - ts)
             bv[hit_b] = v_plus
 
     def _freeze(self, involved, x0p, bq0, x1p, bq1, frozen_p, frozen_b):

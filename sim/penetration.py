@@ -58,6 +58,7 @@ import warp as wp
 
 from kernels import penetration as _k
 from sim.model import Model, State
+from sim.rotation import quat_rotate
 
 __all__ = [
     "DEFAULT_TOL",
@@ -114,14 +115,6 @@ def _triangles_cross(ta: np.ndarray, tb: np.ndarray, tol: float) -> np.ndarray:
                 s[idx, i], s[idx, j], t[idx, 0], t[idx, 1], t[idx, 2], tol
             )
     return hit
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotates ``v`` (..., 3) by unit quaternions ``q`` (..., 4) ``(x, y, z, w)`` (normalised here)."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
 
 
 def vertex_components(faces: np.ndarray, n: int) -> np.ndarray:
@@ -366,7 +359,7 @@ class PenetrationChecker:
             raise ValueError(f"state has {len(bq)} bodies, the model {self.body_count}")
         if len(self.shape_vertices):
             q = bq[self.shape_body]
-            shape = q[:, :3] + _quat_rotate(q[:, 3:], self.shape_vertices)
+            shape = q[:, :3] + quat_rotate(q[:, 3:], self.shape_vertices)
         else:
             shape = np.zeros((0, 3))
         return np.concatenate([pq, shape, self.static_vertices])
