@@ -2,9 +2,10 @@
 
 A 12 x 12-cell cloth (0.6 m square in the x-z plane, y = 0, top edge at z = 0.8 m; areal density
 0.5 kg/m^2, springs: stretch 60, shear 20, bending 2 N/m, damping 0.01 N s/m) hangs from its two
-pinned top corners. A rigid ball (icosphere radius 0.08 m, density 800 kg/m^3) starts at
-(0, -0.4, 0.5) with velocity (0, 6, 0) m/s and hits the cloth. No ground. Restitution 0,
-friction 0.3. Components: cloth, rigid.
+pinned top corners. A rigid ball (icosphere radius 0.08 m, density 100 kg/m^3, 0.21 kg) starts at
+(0, -0.4, 0.5) with velocity (0, 4, 0) m/s (``--ball-speed``), hits the cloth, and drops onto a static
+floor box (top face z = 0, below the cloth's lowest edge at z = 0.2). Restitution 0, friction 0.3.
+Components: cloth, rigid, static.
 
 Runner, options and summary: see :mod:`scenes.sim_common`.
 """
@@ -16,25 +17,34 @@ import math
 from typing import Any
 
 from scenes.sim_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
-from scenes.sim_common import add_arguments as add_arguments
+from scenes import sim_common
+from scenes.registry import positive_float
 from scenes.sim_common import run_scene
 
 NAME = "cloth_rigid"
-DESCRIPTION = "Rigid ball thrown at 6 m/s into a cloth hanging from two corners (cloth + rigid)"
+DESCRIPTION = "Rigid ball thrown at 4 m/s into a cloth hanging from two corners (cloth + rigid + static floor)"
 
 CLOTH_CELLS = 12
 CLOTH_SIZE = 0.6
 CLOTH_TOP = 0.8
 BALL_RADIUS = 0.08
-BALL_DENSITY = 800.0
+BALL_DENSITY = 100.0
 BALL_POS = (0.0, -0.4, 0.5)
-BALL_SPEED = 6.0
+BALL_SPEED = 4.0
 THICKNESS = 1e-3
+FLOOR_HALF = (1.5, 1.5, 0.05)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The common simulation options plus ``--ball-speed``."""
+    sim_common.add_arguments(parser)
+    parser.add_argument("--ball-speed", type=positive_float, default=BALL_SPEED,
+                        help=f"speed of the ball towards the cloth [m/s] (default {BALL_SPEED})")
 
 
 def build(builder: Any, args: argparse.Namespace) -> None:
     """Adds the hanging cloth and the ball."""
-    from sim.mesh_io import icosphere
+    from sim.mesh_io import box_mesh, icosphere
 
     n = CLOTH_CELLS
     cell = CLOTH_SIZE / n
@@ -47,7 +57,8 @@ def build(builder: Any, args: argparse.Namespace) -> None:
         pinned=[top_left, top_right],
     )
     builder.add_rigid_body(*icosphere(BALL_RADIUS, 2), density=BALL_DENSITY, pos=BALL_POS,
-                           velocity=(0.0, BALL_SPEED, 0.0))
+                           velocity=(0.0, float(getattr(args, "ball_speed", BALL_SPEED)), 0.0))
+    builder.add_static_mesh(*box_mesh(FLOOR_HALF), pos=(0.0, 0.0, -FLOOR_HALF[2]))
     builder.set_contact(restitution=0.0, friction=0.3, thickness=THICKNESS)
 
 

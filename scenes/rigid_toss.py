@@ -1,7 +1,7 @@
 """Scene ``rigid_toss``: a spinning box tossed onto the ground knocks into a resting box.
 
 Box A (0.1 m half extents, density 500 kg/m^3) starts at (-0.6, 0, 0.3) with velocity
-(2, 0, 1) m/s and angular velocity (0, 3, 1) rad/s; box B (same size and density) rests on the
+(3, 0, 1) m/s and angular velocity (0, 3, 1) rad/s; box B (same size and density) rests on the
 ground at (0.8, 0, 0.1). The ground is a large static box (half extents (3, 3, 0.1), top face at
 z = 0) plus a ground plane z = 0 (planes act on particles only; the static box carries the rigid
 contacts). Restitution 0.2, friction 0.4. Components: rigid, static.
@@ -24,7 +24,7 @@ DESCRIPTION = "Spinning box tossed onto the ground into a resting box (rigid + s
 BOX_HALF = 0.1
 DENSITY = 500.0
 TOSS_POS = (-0.6, 0.0, 0.3)
-TOSS_VELOCITY = (2.0, 0.0, 1.0)
+TOSS_VELOCITY = (3.0, 0.0, 1.0)
 TOSS_ANGULAR_VELOCITY = (0.0, 3.0, 1.0)
 REST_POS = (0.8, 0.0, 0.1)
 GROUND_HALF = (3.0, 3.0, 0.1)

@@ -48,24 +48,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"substeps per frame (>= 1; default {DEFAULT_SUBSTEPS})")
     parser.add_argument("--device", default=DEFAULT_DEVICE,
                         help=f"Warp device, e.g. cpu or cuda:0 (default {DEFAULT_DEVICE})")
+    parser.add_argument("--scale", type=positive_float, default=1.0,
+                        help="multiply every length of the scene (and gravity, velocities) by this "
+                             "factor, masses and times kept: the same motion, scaled (default 1)")
 
 
 def default_args(**overrides: Any) -> argparse.Namespace:
     """A namespace with the CLI defaults (for in-process runs), updated by ``overrides``."""
     ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
-                            substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE)
+                            substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
 
 
 def build_model(build: BuildFn, args: argparse.Namespace):
-    """Runs the scene's ``build`` on a fresh builder and finalises it on ``args.device``."""
+    """Runs the scene's ``build`` on a fresh builder, finalises it on ``args.device`` and scales
+    it by ``args.scale`` (:meth:`sim.model.Model.scaled`)."""
     from sim.builder import ModelBuilder
 
     builder = ModelBuilder()
     build(builder, args)
-    return builder.finalize(getattr(args, "device", DEFAULT_DEVICE))
+    model = builder.finalize(getattr(args, "device", DEFAULT_DEVICE))
+    scale = float(getattr(args, "scale", 1.0))
+    return model if scale == 1.0 else model.scaled(scale)
 
 
 class EnergyMeter:
@@ -240,6 +246,7 @@ def simulate(
         "dt": dt,
         "substeps": substeps,
         "device": str(model.device),
+        "scale": float(getattr(args, "scale", 1.0)),
         "components": sorted(model.components),
         "particles": int(model.particle_count),
         "bodies": int(model.body_count),

@@ -1,57 +1,149 @@
-"""Collision handling for the stepper: CCD on every surface, impulses applied at the time of impact.
+"""Collision handling for the stepper: proximity impulses, CCD, impulses at the time of impact.
 
 :class:`ImpulseCollisionHandler` is plugged into :class:`sim.integrator.SemiImplicitIntegrator`
 as its ``collision_handler``. Per substep of length ``h`` it receives the start State and the
-predicted end State (velocities ``v-`` after forces) and:
+predicted end State (velocities ``v-`` after forces) and works on one set of collidable vertices:
+cloth particles, rigid-body surface vertices (body frame -> world) and static mesh vertices; the
+model's components decide which groups exist and which may touch (cloth with itself only with
+``"self_collision"``, a rigid body never with itself, static meshes never with each other).
 
-1. gathers every collidable surface into one vertex set with linear motion over the substep:
-   cloth particles, rigid-body surface vertices (body frame -> world at the start and predicted
-   poses), static mesh vertices (not moving); the model's components decide which groups exist
-   and which collide with themselves (cloth only with "self_collision"; a rigid body never with
-   itself; static meshes never with each other);
-2. runs :func:`collision.ccd.mesh_ccd` (broad phase + vertex-face / edge-edge narrow phase on the
-   coplanarity cubic) and, for each primitive with a hit, takes its earliest time of impact t*;
-3. applies a normal impulse with restitution and a Coulomb friction impulse at t*, split by
-   barycentric weights and inverse masses (cloth) or through the body's inverse mass and world
-   inverse inertia (rigid), and moves each primitive with its old velocity until t* and the new
-   one after: ``x(h) = x0 + t* v- + (h - t*) v+`` (rigid bodies: the same for the centre of
-   mass, the orientation turned by w- for t* then w+ for h - t*);
-4. repeats 2-3 until the substep is collision free or ``max_iterations`` is reached; then the
-   fail-safe freezes every primitive still involved in a collision at its start position (zero
-   displacement and zero velocity this substep) and re-checks, growing the frozen
-   set until no collision remains. The start of a substep is collision free, so this always
-   terminates with no interpenetration.
+1. **Proximity** (resting and sliding contact, after Bridson et al. 2002): vertex-face and
+   edge-edge pairs closer than the separation ``delta`` at the start of the substep become
+   contacts at ``t* = 0`` with the normal of their exact closest points. Their impulses keep the
+   normal relative velocity at least ``-e v_n-`` (restitution ``e``) and at least
+   ``SEPARATION_RATE (delta - d) / h``, so resting primitives neither approach nor get pushed
+   apart faster than a tenth of the missing gap per substep.
+2. **Continuous collision detection**: the planned motion (linear per vertex from the start to
+   the planned end positions) goes through :class:`collision.broad_phase.BroadPhase` and the
+   vertex-face / edge-edge narrow phase of :mod:`kernels.ccd` at zero thickness (the coplanarity
+   cubic and its robust roots: the exact first contact time ``t*``). Every hit whose primitives
+   still approach at ``t*`` joins the contact set, with the normal at ``t*`` oriented by the
+   start offset and the target ``max(-e v_n-, SEPARATION_RATE delta / h)``.
+3. **Impulses** for the whole contact set: projected Gauss-Seidel sweeps in a Warp kernel
+   (:func:`kernels.contact.solve_contacts_kernel`, sequential, deterministic), accumulated normal
+   impulses clamped to ``>= 0`` and Coulomb friction clamped to the cone ``|j_t| <= mu j_n``. Cloth impulses split by the barycentric / segment weights and the
+   inverse masses; rigid ones change the linear and the angular velocity (world inverse inertia).
+4. **Time-of-impact integration**: every particle or body whose velocity changed moves with its
+   old velocity until its earliest contact ``t*`` and with the new one after,
+   ``x(h) = x0 + t* v- + (h - t*) v+`` (bodies: the centre of mass the same way, the orientation
+   turned by ``w-`` for ``t*`` and then by ``w+``).
+5. 2-4 repeat until the planned motion is collision free or ``max_iterations`` rounds are done;
+   then the fail-safe forms **rigid impact zones** (Provot 1997; Bridson et al. 2002): the
+   particles and bodies joined by a still-approaching contact move as one rigid body over the
+   whole substep with their total linear and angular momentum (at rest when the zone holds a
+   static vertex or a pinned particle), and the zones grow until CCD finds no approaching
+   contact. A zone's straight vertex paths are an invertible affine motion, so nothing inside it
+   can collide, and the start of a substep is collision free: this terminates without
+   interpenetration.
 
-This first version evaluates the response in numpy on the host (the detection runs in Warp
-kernels); the derivative of the trajectory through t* is available for particle-plane contacts
-(:mod:`kernels.integrate`), not yet for this general mesh response.
+The response runs in numpy on the host around the Warp broad and narrow phases (its cost is
+measured per scene in ``benchmarks/sim.py``). The derivative of the trajectory through ``t*`` is
+taped for particle-plane contacts (:mod:`kernels.integrate`); this mesh response is not taped.
 """
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import warp as wp
 
-from collision.ccd import mesh_ccd
+from collision.broad_phase import BroadPhase, mesh_edges
+from collision.ccd import _run as _narrow_phase
+from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
 from sim.model import Model, State
 from sim.rotation import quat_to_matrix, quat_turn
 
+SEPARATION_RATE = 0.1
+"""Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
+(Bridson et al. 2002 use the same order); larger values make resting contacts jitter."""
+
+DEFAULT_SEPARATION_RELATIVE = 1e-4
+"""Separation used when the model's thickness is 0: this fraction of the diagonal of the
+collidable vertices' bounding box at the start (1e-4 m for a 1 m scene)."""
+
+SOLVER_ITERATIONS = 500
+"""Most projected Gauss-Seidel sweeps per impulse solve (it stops earlier once every contact's normal
+velocity is within :data:`SOLVER_TOLERANCE` of its target)."""
+
+SOLVER_TOLERANCE = 0.05
+"""Stop the Gauss-Seidel sweeps when no contact's normal velocity is below its target by more than this
+fraction of the separation speed ``SEPARATION_RATE delta / h``."""
+
+APPROACH_EPS = 1e-12
+"""A CCD hit counts as approaching when its normal relative velocity is below ``-APPROACH_EPS``
+times the contact's largest vertex speed plus the separation speed (float64 rounding of a
+velocity that is exactly separating or tangential stays far inside)."""
+
+_PARTICLE, _BODY, _STATIC = 0, 1, 2
+
+
+class _Contacts:
+    """The contact set of one substep (grows over the CCD rounds; keyed by primitive pair)."""
+
+    def __init__(self) -> None:
+        self.keys: dict[tuple[int, int, int], int] = {}
+        self.idx = np.zeros((0, 4), dtype=np.int64)  # vertex indices (CCD order)
+        self.w = np.zeros((0, 4))  # weights: side A positive (sum 1), side B negative (sum -1)
+        self.n = np.zeros((0, 3))  # unit normal from side B to side A
+        self.toi = np.zeros(0)  # time of impact in the substep [s]
+        self.target = np.zeros(0)  # minimum normal relative velocity after the impulse [m/s]
+        self.edge_edge = np.zeros(0, dtype=bool)
+        self.jn = np.zeros(0)  # accumulated normal impulse [N s]
+        self.jt = np.zeros((0, 3))  # accumulated friction impulse [N s]
+
+    def __len__(self) -> int:
+        return len(self.toi)
+
+    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target) -> None:
+        """Adds contacts (a pair already present takes the new normal, weights and target, and
+        the earlier of the two times)."""
+        new_rows = []
+        for c in range(len(pair)):
+            key = (int(kind[c]), int(pair[c, 0]), int(pair[c, 1]))
+            row = self.keys.get(key)
+            if row is None:
+                self.keys[key] = len(self.toi) + len(new_rows)
+                new_rows.append(c)
+            else:
+                self.w[row], self.n[row] = w[c], n[c]
+                self.toi[row] = min(self.toi[row], toi[c])
+                self.target[row] = max(self.target[row], target[c])
+        if new_rows:
+            r = np.asarray(new_rows)
+            self.idx = np.concatenate([self.idx, idx[r]])
+            self.w = np.concatenate([self.w, w[r]])
+            self.n = np.concatenate([self.n, n[r]])
+            self.toi = np.concatenate([self.toi, toi[r]])
+            self.target = np.concatenate([self.target, target[r]])
+            self.edge_edge = np.concatenate([self.edge_edge, kind[r] == 1])
+            self.jn = np.concatenate([self.jn, np.zeros(len(r))])
+            self.jt = np.concatenate([self.jt, np.zeros((len(r), 3))])
+
 
 class ImpulseCollisionHandler:
-    """CCD + impulse response at the time of impact (see the module docstring).
+    """Proximity + CCD + impulse response at the time of impact (see the module docstring).
 
     Args:
         model: the finalised model (its surfaces, masses, restitution, friction, thickness).
-        max_iterations: detection/response rounds before the fail-safe.
+        max_iterations: CCD/response rounds before the fail-safe.
+
+    Attributes (of the last call, for logging and tests):
+        last_contacts: (C, 3) contact points [m] (side A's closest point at ``t*``) of the
+            contacts that received an impulse.
+        last_normals: (C, 3) their unit normals.
+        last_times: (C,) their times of impact from the start of the substep [s].
+        failsafe_count: substeps (over the handler's life) in which the fail-safe froze something.
+        separation: the separation ``delta`` [m] the proximity pass keeps.
     """
 
     def __init__(self, model: Model, max_iterations: int = 8):
         self.model = model
         self.max_iterations = int(max_iterations)
-        comps = model.components
-        self._np = {}
         m = model
+        comps = model.components
         faces, groups, self_collision, static = [], [], [], []
+        vtype, vowner = [], []
         self.n_particles = m.particle_count if "cloth" in comps else 0
         offset = 0
         if self.n_particles:
@@ -59,6 +151,8 @@ class ImpulseCollisionHandler:
             groups.append(np.zeros(self.n_particles, dtype=np.int64))
             self_collision.append("self_collision" in comps)
             static.append(False)
+            vtype.append(np.full(self.n_particles, _PARTICLE))
+            vowner.append(np.arange(self.n_particles))
             offset = self.n_particles
         self.shape_offset = offset
         self.n_shape = 0
@@ -67,35 +161,61 @@ class ImpulseCollisionHandler:
             self.shape_body = m.shape_vertex_body.numpy().astype(np.int64)
             self.n_shape = len(self.shape_vertices)
             faces.append(m.shape_faces.numpy().reshape(-1, 3) + offset)
-            base = len(self_collision)
-            groups.append(base + self.shape_body)
+            groups.append(len(self_collision) + self.shape_body)
             self_collision.extend([False] * m.body_count)
             static.extend([False] * m.body_count)
+            vtype.append(np.full(self.n_shape, _BODY))
+            vowner.append(self.shape_body)
             offset += self.n_shape
         self.static_offset = offset
         self.static_vertices = np.zeros((0, 3))
         if m.static_vertices is not None and m.static_vertices.shape[0]:
             self.static_vertices = m.static_vertices.numpy()
+            n_static = len(self.static_vertices)
             faces.append(m.static_faces.numpy().reshape(-1, 3) + offset)
-            groups.append(np.full(len(self.static_vertices), len(self_collision), dtype=np.int64))
+            groups.append(np.full(n_static, len(self_collision), dtype=np.int64))
             self_collision.append(False)
             static.append(True)
-            offset += len(self.static_vertices)
+            vtype.append(np.full(n_static, _STATIC))
+            vowner.append(np.zeros(n_static, dtype=np.int64))
+            offset += n_static
         self.n_vertices = offset
         self.faces = np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), dtype=np.int64)
-        self.groups = np.concatenate(groups) if groups else np.zeros(0, dtype=np.int64)
-        self.self_collision = np.array(self_collision, dtype=bool)
-        self.static = np.array(static, dtype=bool)
+        self.edges = mesh_edges(self.faces) if len(self.faces) else np.zeros((0, 2), dtype=np.int64)
+        self.vertex_type = np.concatenate(vtype).astype(np.int64) if vtype else np.zeros(0, dtype=np.int64)
+        self.vertex_owner = np.concatenate(vowner).astype(np.int64) if vowner else np.zeros(0, dtype=np.int64)
+        self._vertex_type_w = wp.array(np.append(self.vertex_type, 0).astype(np.int32), dtype=wp.int32, device="cpu")
+        self._vertex_owner_w = wp.array(np.append(self.vertex_owner, 0).astype(np.int32), dtype=wp.int32, device="cpu")
+        self.last_sweeps = 0
+        self.broad_phase = None
+        if self.n_vertices and len(self.faces):
+            self.broad_phase = BroadPhase(
+                self.faces, self.edges, num_vertices=self.n_vertices,
+                groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
+                static=np.array(static, dtype=bool), device="cpu",
+            )
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
-        if m.body_count:
+        self.n_bodies = int(m.body_count) if self.n_shape else 0
+        self.body_inv_mass = np.zeros(0)
+        self._body_mass = np.zeros(0)
+        if self.n_bodies:
             self.body_inv_mass = m.body_inv_mass.numpy()
             self.body_inv_inertia = m.body_inv_inertia.numpy().reshape(-1, 3, 3)
+            self._body_mass = m.body_mass.numpy()
+            self._body_inertia = m.body_inertia.numpy().reshape(-1, 3, 3)
+        self.separation = float(m.thickness)
+        if self.separation <= 0.0 and self.n_vertices:
+            x = self._vertices(m.particle_q.numpy()[: self.n_particles] if self.n_particles else np.zeros((0, 3)),
+                               m.body_q.numpy() if self.n_shape else np.zeros((0, 7)))
+            diag = float(np.linalg.norm(x.max(0) - x.min(0))) if len(x) else 0.0
+            self.separation = DEFAULT_SEPARATION_RELATIVE * diag if diag > 0 else 1e-6
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
         self.failsafe_count = 0
 
     # ------------------------------------------------------------------------------------------
+    # geometry
 
     def _vertices(self, particle_q, body_q):
         """World positions of all collidable vertices for particle and body arrays (numpy)."""
@@ -110,237 +230,411 @@ class ImpulseCollisionHandler:
             parts.append(self.static_vertices)
         return np.concatenate(parts) if parts else np.zeros((0, 3))
 
-    def _vertex_velocity(self, idx, pv, bq, bv):
-        """Velocity of collidable vertex ``idx`` (numpy int array) given particle velocities and body
-        poses / twists (angular, linear)."""
-        vel = np.zeros((len(idx), 3))
-        is_p = idx < self.static_offset
-        is_p &= idx < self.shape_offset
-        vel[is_p] = pv[idx[is_p]]
-        is_s = (idx >= self.shape_offset) & (idx < self.static_offset)
-        if is_s.any():
-            sv = idx[is_s] - self.shape_offset
-            b = self.shape_body[sv]
-            r = quat_to_matrix(bq[b, 3:7]) @ self.shape_vertices[sv][..., None]
-            vel[is_s] = bv[b, 3:6] + np.cross(bv[b, :3], r[..., 0])
+    def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
+        """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
+        idx = np.zeros((len(pair), 4), dtype=np.int64)
+        vf = kind == 0
+        idx[vf, 0] = pair[vf, 0]
+        idx[vf, 1:] = self.faces[pair[vf, 1]]
+        ee = ~vf
+        idx[ee, :2] = self.edges[pair[ee, 0]]
+        idx[ee, 2:] = self.edges[pair[ee, 1]]
+        return idx
+
+    def _offsets(self, x: np.ndarray, idx: np.ndarray, kind: np.ndarray) -> np.ndarray:
+        """Exact closest-point offsets (side A minus side B) of the pairs at positions ``x``."""
+        out = wp.empty(len(idx), dtype=wp.vec3d, device="cpu")
+        wp.launch(
+            contact_offsets_kernel, dim=len(idx),
+            inputs=[wp.array(x, dtype=wp.vec3d, device="cpu"), wp.array(idx.astype(np.int32), dtype=wp.vec4i, device="cpu"),
+                    wp.array(kind.astype(np.int32), dtype=wp.int32, device="cpu")],
+            outputs=[out], device="cpu",
+        )
+        return out.numpy()
+
+    @staticmethod
+    def _weights(y: np.ndarray, edge_edge: np.ndarray) -> np.ndarray:
+        """Signed weights (C, 4) of the closest points of the pairs at positions ``y`` (C, 4, 3)."""
+        w = np.zeros((len(y), 4))
+        vf = ~edge_edge
+        if vf.any():
+            bary = _barycentric(y[vf, 0], y[vf, 1], y[vf, 2], y[vf, 3])
+            w[vf] = np.column_stack([np.ones(int(vf.sum())), -bary])
+        if edge_edge.any():
+            a0, a1, b0, b1 = (y[edge_edge, k] for k in range(4))
+            s, u = _segment_params(a0, a1, b0, b1)
+            w[edge_edge] = np.column_stack([1 - s, s, -(1 - u), -u])
+        return w
+
+    # ------------------------------------------------------------------------------------------
+    # velocities and impulses
+
+    def _vertex_velocities(self, idx, vp, bv, r0):
+        """(C, 4, 3) velocities of the contacts' vertices for particle velocities ``vp`` and body
+        twists ``bv`` (angular, linear), lever arms ``r0`` of the start pose."""
+        vel = np.zeros(idx.shape + (3,))
+        t = self.vertex_type[idx]
+        o = self.vertex_owner[idx]
+        p = t == _PARTICLE
+        vel[p] = vp[o[p]]
+        b = t == _BODY
+        if b.any():
+            body = o[b]
+            vel[b] = bv[body, 3:6] + np.cross(bv[body, :3], r0[idx[b] - self.shape_offset])
         return vel
 
-    def __call__(self, state_in: State, state_pred: State, h: float) -> State:
-        x0p = state_in.particle_q.numpy() if self.n_particles else np.zeros((0, 3))
-        bq0 = state_in.body_q.numpy() if self.n_shape else np.zeros((0, 7))
-        vp = state_pred.particle_qd.numpy().copy() if self.n_particles else np.zeros((0, 3))
-        bq1 = state_pred.body_q.numpy().copy() if self.n_shape else np.zeros((0, 7))
-        bv = state_pred.body_qd.numpy().copy() if self.n_shape else np.zeros((0, 6))
-        x1p = state_pred.particle_q.numpy().copy() if self.n_particles else np.zeros((0, 3))
-        if self.n_vertices == 0 or len(self.faces) == 0:
-            return None
-        x0 = self._vertices(x0p, bq0)
-        frozen_p = np.zeros(len(x0p), dtype=bool)
-        frozen_b = np.zeros(len(bq0), dtype=bool)
-        changed = False
-        contacts, normals, times = [], [], []
-        for iteration in range(self.max_iterations + 64):
-            x1 = self._vertices(x1p, bq1)
-            res = mesh_ccd(
-                x0, x1, self.faces, groups=self.groups, self_collision=self.self_collision,
-                static=self.static, thickness=self.model.thickness,
-            )
-            if res.num_contacts == 0:
-                break
-            hit_vf = res.vf[res.vf_hit]
-            toi_vf = res.vf_toi[res.vf_hit]
-            hit_ee = res.ee[res.ee_hit]
-            toi_ee = res.ee_toi[res.ee_hit]
-            # a contact only needs resolving while the primitives approach each other: touching
-            # primitives that slide or separate (a resting contact after its impulse) are fine
-            approaching = self._approaching(hit_vf, toi_vf, hit_ee, toi_ee, res.edges, x0, x1, vp, bq0, bv)
-            n_vf = len(hit_vf)
-            hit_vf, toi_vf = hit_vf[approaching[:n_vf]], toi_vf[approaching[:n_vf]]
-            hit_ee, toi_ee = hit_ee[approaching[n_vf:]], toi_ee[approaching[n_vf:]]
-            if len(hit_vf) + len(hit_ee) == 0:
-                break
-            changed = True
-            if iteration >= self.max_iterations:
-                # fail-safe: freeze everything involved at its start position
-                involved = np.unique(np.concatenate([hit_vf[:, 0], self.faces[hit_vf[:, 1]].ravel(), res.edges[hit_ee].ravel()]))
-                self._freeze(involved, x0p, bq0, x1p, bq1, frozen_p, frozen_b)
-                vp[frozen_p] = 0.0  # a frozen primitive must not keep gathering velocity
-                bv[frozen_b] = 0.0
-                self.failsafe_count += 1
-                continue
-            idx, tois = self._primitives(hit_vf, toi_vf, hit_ee, toi_ee, res.edges)
-            n, w = self._normals_and_weights(idx, x0, x1, tois, len(hit_vf))
-            contacts.append(np.einsum("ck,ckd->cd", np.abs(w[:, :2]) / np.abs(w[:, :2]).sum(1, keepdims=True), (x0[idx[:, :2]] + tois[:, None, None] * (x1[idx[:, :2]] - x0[idx[:, :2]]))))
-            normals.append(n)
-            times.append(tois * h)
-            self._respond(idx, w, n, tois, x0p, vp, bq0, bq1, bv, x1p, h)
-            x1p[frozen_p] = x0p[frozen_p]
-            bq1[frozen_b] = bq0[frozen_b]
-        self.last_contacts = np.concatenate(contacts) if contacts else np.zeros((0, 3))
-        self.last_normals = np.concatenate(normals) if normals else np.zeros((0, 3))
-        self.last_times = np.concatenate(times) if times else np.zeros(0)
-        if not changed:
-            return None
-        d = self.model.device
-        out = State(
-            particle_q=wp.array(np.concatenate([x1p, state_pred.particle_q.numpy()[len(x1p):]]) if self.n_particles else state_pred.particle_q.numpy(), dtype=wp.vec3d, device=d),
-            particle_qd=wp.array(np.concatenate([vp, state_pred.particle_qd.numpy()[len(vp):]]) if self.n_particles else state_pred.particle_qd.numpy(), dtype=wp.vec3d, device=d),
-            body_q=wp.array(bq1, dtype=wp.transformd, device=d) if self.n_shape else state_pred.body_q,
-            body_qd=wp.array(bv, dtype=wp.spatial_vectord, device=d) if self.n_shape else state_pred.body_qd,
+    def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w, frozen_p, frozen_b):
+        """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
+        updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
+        impulses of ``cs``. Frozen particles / bodies count as immovable."""
+        if len(cs) == 0:
+            return
+        dev = "cpu"
+
+        def arr(a, dtype, fill_shape):
+            a = np.ascontiguousarray(a)
+            if len(a) == 0:  # the kernel never reads these, but Warp needs an array
+                a = np.zeros(fill_shape)
+            return wp.array(a, dtype=dtype, device=dev)
+
+        inv_mp = np.where(frozen_p, 0.0, self.particle_inv_mass)
+        inv_mb = np.where(frozen_b, 0.0, self.body_inv_mass) if len(bv) else np.zeros(0)
+        inv_ib = np.where(frozen_b[:, None, None], 0.0, inv_inertia_w) if len(bv) else np.zeros((0, 3, 3))
+        vp_w = arr(vp, wp.vec3d, (1, 3))
+        lin_w = arr(bv[:, 3:6], wp.vec3d, (1, 3))
+        ang_w = arr(bv[:, 0:3], wp.vec3d, (1, 3))
+        jn = wp.array(cs.jn, dtype=wp.float64, device=dev)
+        jt = wp.array(cs.jt, dtype=wp.vec3d, device=dev)
+        sweeps = wp.zeros(1, dtype=wp.int32, device=dev)
+        tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        wp.launch(
+            solve_contacts_kernel, dim=1,
+            inputs=[
+                wp.array(cs.idx.astype(np.int32), dtype=wp.vec4i, device=dev),
+                wp.array(cs.w, dtype=wp.vec4d, device=dev),
+                wp.array(cs.n, dtype=wp.vec3d, device=dev),
+                wp.array(cs.target, dtype=wp.float64, device=dev),
+                wp.array(cs.edge_edge.astype(np.int32), dtype=wp.int32, device=dev),
+                self._vertex_type_w, self._vertex_owner_w,
+                arr(r0, wp.vec3d, (1, 3)), int(self.shape_offset),
+                arr(inv_mp, wp.float64, (1,)), arr(inv_mb, wp.float64, (1,)), arr(inv_ib, wp.mat33d, (1, 3, 3)),
+                wp.float64(self.model.friction), int(SOLVER_ITERATIONS), wp.float64(tol),
+            ],
+            outputs=[vp_w, lin_w, ang_w, jn, jt, sweeps],
+            device=dev,
         )
-        return out
+        if len(vp):
+            vp[:] = vp_w.numpy()
+        if len(bv):
+            bv[:, 3:6] = lin_w.numpy()
+            bv[:, 0:3] = ang_w.numpy()
+        cs.jn, cs.jt = jn.numpy(), jt.numpy()
+        self.last_sweeps = int(sweeps.numpy()[0])
+        vp[frozen_p] = 0.0
+        bv[frozen_b] = 0.0
+
+    def _body_inertia_w(self, body_q):
+        """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
+        if not self.n_bodies:
+            return np.zeros((0, 3, 3))
+        rot = quat_to_matrix(body_q[:, 3:7])
+        return rot @ self._body_inertia @ np.swapaxes(rot, 1, 2)
+
+    def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
+        """Earliest time of impact [s] per particle / body among the contacts of the set (inf
+        where none): its velocity switches from ``v-`` to ``v+`` then."""
+        t_p = np.full(n_p, np.inf)
+        t_b = np.full(n_b, np.inf)
+        if len(cs):
+            toi = np.repeat(cs.toi, 4)
+            t = self.vertex_type[cs.idx].ravel()
+            o = self.vertex_owner[cs.idx].ravel()
+            w = cs.w.ravel()
+            p = (t == _PARTICLE) & (w != 0)
+            np.minimum.at(t_p, o[p], toi[p])
+            b = t == _BODY
+            np.minimum.at(t_b, o[b], toi[b])
+        return t_p, t_b
 
     # ------------------------------------------------------------------------------------------
 
-    def _primitives(self, hit_vf, toi_vf, hit_ee, toi_ee, edges):
-        idx = np.concatenate(
-            [np.column_stack([hit_vf[:, 0], self.faces[hit_vf[:, 1]]]).reshape(-1, 4),
-             np.column_stack([edges[hit_ee[:, 0]], edges[hit_ee[:, 1]]]).reshape(-1, 4)]
-        ).astype(np.int64)
-        return idx, np.concatenate([toi_vf, toi_ee])
+    def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
+        self.last_contacts = np.zeros((0, 3))
+        self.last_normals = np.zeros((0, 3))
+        self.last_times = np.zeros(0)
+        if self.broad_phase is None:
+            return None
+        P, B = self.n_particles, self.n_bodies
+        x0p = state_in.particle_q.numpy()[:P] if P else np.zeros((0, 3))
+        bq0 = state_in.body_q.numpy() if B else np.zeros((0, 7))
+        vp_minus = state_pred.particle_qd.numpy()[:P] if P else np.zeros((0, 3))
+        bv_minus = state_pred.body_qd.numpy() if B else np.zeros((0, 6))
+        x1p_pred = state_pred.particle_q.numpy()[:P] if P else np.zeros((0, 3))
+        bq1_pred = state_pred.body_q.numpy() if B else np.zeros((0, 7))
+        vp, bv = vp_minus.copy(), bv_minus.copy()
+        x0 = self._vertices(x0p, bq0)
+        r0 = np.zeros((0, 3))
+        inv_inertia_w = np.zeros((0, 3, 3))
+        if B:
+            rot = quat_to_matrix(bq0[:, 3:7])
+            r0 = np.einsum("nij,nj->ni", rot[self.shape_body], self.shape_vertices)
+            inv_inertia_w = rot @ self.body_inv_inertia @ np.swapaxes(rot, 1, 2)
+        no_p = np.zeros(P, dtype=bool)
+        no_b = np.zeros(B, dtype=bool)
+        zones = _ImpactZones(P, B, self.particle_inv_mass)
+        delta = self.separation
+        self._sep_speed = delta / h
+        e = self.model.restitution
+        cs = _Contacts()
 
-    def _approaching(self, hit_vf, toi_vf, hit_ee, toi_ee, edges, x0, x1, vp, bq, bv):
-        idx, tois = self._primitives(hit_vf, toi_vf, hit_ee, toi_ee, edges)
-        if len(idx) == 0:
-            return np.zeros(0, dtype=bool)
-        n, w = self._normals_and_weights(idx, x0, x1, tois, len(hit_vf))
-        vel = np.stack([self._vertex_velocity(idx[:, k], vp, bq, bv) for k in range(4)], 1)
-        vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
-        return vn < 0.0
+        def plan():
+            """End positions (particles, body poses) of the current velocities and contact times."""
+            t_p, t_b = self._owner_times(cs, P, B)
+            x1p = x1p_pred.copy()
+            hit = np.isfinite(t_p)
+            ts = t_p[hit][:, None]
+            x1p[hit] = x0p[hit] + ts * vp_minus[hit] + (h - ts) * vp[hit]
+            zp, zb = zones.particles, zones.bodies
+            x1p[zp] = x0p[zp] + h * vp[zp]
+            bq1 = bq1_pred.copy()
+            hit_b = np.isfinite(t_b)
+            if hit_b.any():
+                ts = t_b[hit_b]
+                bq1[hit_b, :3] = bq0[hit_b, :3] + ts[:, None] * bv_minus[hit_b, 3:6] + (h - ts)[:, None] * bv[hit_b, 3:6]
+                q_mid = quat_turn(bq0[hit_b, 3:7], bv_minus[hit_b, :3], ts)
+                bq1[hit_b, 3:7] = quat_turn(q_mid, bv[hit_b, :3], h - ts)
+            if zb.any():
+                bq1[zb, :3] = bq0[zb, :3] + h * bv[zb, 3:6]
+                bq1[zb, 3:7] = quat_turn(bq0[zb, 3:7], bv[zb, :3], np.full(int(zb.sum()), h))
+            t_p[zp] = 0.0
+            t_b[zb] = 0.0
+            return x1p, bq1, t_p, t_b
 
-    def _normals_and_weights(self, idx, x0, x1, tois, n_vf):
-        """Contact normals (pointing from the second primitive to the first) and signed weights
-        w such that sum_k w_k x_k is the relative position of the closest points."""
-        t = tois[:, None, None]
-        y = x0[idx] + t * (x1[idx] - x0[idx])
+        def velocities_at(idx, toi, t_p, t_b):
+            """(C, 4, 3) vertex velocities at each contact's time: v- before the owner's t*, v+ after."""
+            before = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
+            after = self._vertex_velocities(idx, vp, bv, r0)
+            t = self.vertex_type[idx]
+            o = self.vertex_owner[idx]
+            owner_t = np.full(idx.shape, np.inf)
+            p = t == _PARTICLE
+            owner_t[p] = t_p[o[p]]
+            b = t == _BODY
+            owner_t[b] = t_b[o[b]]
+            use_before = toi[:, None] < owner_t
+            return np.where(use_before[..., None], before, after)
+
+        # 1. proximity contacts at the start of the substep
+        vf, ee = self.broad_phase.query(x0, x0, delta)
+        if len(vf) + len(ee):
+            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
+            pair = np.concatenate([vf, ee])
+            idx = self._pair_vertices(kind, pair)
+            off = self._offsets(x0, idx, kind)
+            d = np.linalg.norm(off, axis=1)
+            near = d < delta
+            if near.any():
+                kind, pair, idx, off, d = kind[near], pair[near], idx[near], off[near], d[near]
+                ee_mask = kind == 1
+                w = self._weights(x0[idx], ee_mask)
+                vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
+                vrel = np.einsum("ck,ckd->cd", w, vel)
+                n = np.divide(off, d[:, None], out=np.zeros_like(off), where=d[:, None] > 0)
+                # touching exactly: no side is known, oppose the relative motion (else +z)
+                zero = d <= 0
+                if zero.any():
+                    speed = np.linalg.norm(vrel[zero], axis=1, keepdims=True)
+                    n[zero] = np.where(speed > 0, -vrel[zero] / np.where(speed > 0, speed, 1.0), [0.0, 0.0, 1.0])
+                vn = np.einsum("cd,cd->c", vrel, n)
+                target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
+                cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
+                self._solve(cs, vp, bv, r0, inv_inertia_w, no_p, no_b)
+
+        # 2-5. CCD rounds on the planned motion
+        failsafe = False
+        for iteration in itertools.count():
+            x1p, bq1, t_p, t_b = plan()
+            x1 = self._vertices(x1p, bq1)
+            vf, ee = self.broad_phase.query(x0, x1, 0.0)
+            if len(vf) + len(ee) == 0:
+                break
+            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
+            pair = np.concatenate([vf, ee])
+            idx = self._pair_vertices(kind, pair)
+            queries = np.ascontiguousarray(np.concatenate([x0[idx], x1[idx]], axis=1))
+            hit_vf, toi_vf, _ = _narrow_phase(0, queries[kind == 0], 0.0)
+            hit_ee, toi_ee, _ = _narrow_phase(1, queries[kind == 1], 0.0)
+            hit = np.concatenate([hit_vf, hit_ee])
+            if not hit.any():
+                break
+            toi = np.concatenate([toi_vf, toi_ee])[hit]
+            kind, pair, idx = kind[hit], pair[hit], idx[hit]
+            ee_mask = kind == 1
+            frac = toi[:, None, None]
+            y = x0[idx] + frac * (x1[idx] - x0[idx])
+            w = self._weights(y, ee_mask)
+            n = self._normals(idx, x0, y, w, ee_mask)
+            vel = velocities_at(idx, toi * h, t_p, t_b)
+            vrel = np.einsum("ck,ckd->cd", w, vel)
+            vn = np.einsum("cd,cd->c", vrel, n)
+            # CCD checks the straight paths x0 -> x1; along them the primitives move with the
+            # mean velocity of the substep, which is what decides whether they pass through
+            v_path = np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h)
+            vn_path = np.einsum("cd,cd->c", v_path, n)
+            # below -APPROACH_EPS relative: rounding of an exactly separating pair is not an approach
+            eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
+            approaching = (vn < -eps) | (vn_path < -eps)
+            if not approaching.any():
+                break
+            if iteration >= self.max_iterations:
+                # fail-safe: rigid impact zones (Provot 1997, Bridson et al. 2002): everything
+                # joined by a still-approaching contact moves as one rigid body (momentum kept;
+                # at rest when the zone holds a static or pinned vertex) over the whole substep
+                failsafe = True
+                if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
+                    break  # only contacts inside rigidly moving zones remain (rounding)
+                zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
+                                       self._body_mass, self._body_inertia_w(bq0))
+                continue
+            sel = approaching
+            target = np.maximum(-e * vn[sel], SEPARATION_RATE * delta / h)
+            cs.add(kind[sel], pair[sel], idx[sel], w[sel], n[sel], toi[sel] * h, target)
+            self._solve(cs, vp, bv, r0, inv_inertia_w, no_p, no_b)
+        if failsafe:
+            self.failsafe_count += 1
+        x1p, bq1, _, _ = plan()
+        active = (cs.jn > 0) if len(cs) else np.zeros(0, dtype=bool)
+        if active.any():
+            side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None], cs.w[active], 0.0))
+            # contact point: side A's closest point at t* (linear paths of the planned motion)
+            x1 = self._vertices(x1p, bq1)
+            frac = (cs.toi[active] / h)[:, None, None]
+            y = x0[cs.idx[active]] + frac * (x1[cs.idx[active]] - x0[cs.idx[active]])
+            self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
+            self.last_normals = cs.n[active]
+            self.last_times = cs.toi[active]
+        if len(cs) == 0 and not failsafe:
+            return None
+        d = self.model.device
+        out = State(
+            particle_q=_replace_head(state_pred.particle_q, x1p, wp.vec3d, d),
+            particle_qd=_replace_head(state_pred.particle_qd, vp, wp.vec3d, d),
+            body_q=wp.array(bq1, dtype=wp.transformd, device=d) if B else state_pred.body_q,
+            body_qd=wp.array(bv, dtype=wp.spatial_vectord, device=d) if B else state_pred.body_qd,
+        )
+        return out
+
+    @staticmethod
+    def _normals(idx, x0, y, w, edge_edge):
+        """Unit contact normals (side B -> side A) of CCD hits at positions ``y`` (C, 4, 3): the
+        face normal (vertex-face) or the edges' cross product (edge-edge), oriented by the
+        offset at the start; where those degenerate, the start offset itself."""
         c = len(idx)
         n = np.zeros((c, 3))
-        w = np.zeros((c, 4))
-        if n_vf:
-            p, a, b, cc = y[:n_vf, 0], y[:n_vf, 1], y[:n_vf, 2], y[:n_vf, 3]
-            nv = np.cross(b - a, cc - a)
-            bary = _barycentric(p, a, b, cc)
-            w[:n_vf] = np.column_stack([np.ones(n_vf), -bary])
-            n[:n_vf] = nv
-            # orient by the side the vertex came from (relative position at the start)
-            rel0 = x0[idx[:n_vf, 0]] - np.einsum("ck,ckd->cd", bary, x0[idx[:n_vf, 1:]])
-        if c > n_vf:
-            e = slice(n_vf, c)
-            a0, a1, b0, b1 = y[e, 0], y[e, 1], y[e, 2], y[e, 3]
-            s, u = _segment_params(a0, a1, b0, b1)
-            w[e] = np.column_stack([1 - s, s, -(1 - u), -u])
-            n[e] = np.cross(a1 - a0, b1 - b0)
-            rel0_e = np.einsum("ck,ckd->cd", w[e], x0[idx[e]])
-        rel = np.zeros((c, 3))
-        if n_vf:
-            rel[:n_vf] = rel0
-        if c > n_vf:
-            rel[n_vf:] = rel0_e
-        # degenerate normals (parallel edges, zero-area faces): use the start offset direction
+        vf = ~edge_edge
+        n[vf] = np.cross(y[vf, 2] - y[vf, 1], y[vf, 3] - y[vf, 1])
+        n[edge_edge] = np.cross(y[edge_edge, 1] - y[edge_edge, 0], y[edge_edge, 3] - y[edge_edge, 2])
+        rel = np.einsum("ck,ckd->cd", w, x0[idx])
         norm = np.linalg.norm(n, axis=1)
-        bad = norm <= 1e-12 * np.maximum(1e-300, np.linalg.norm(rel, axis=1) ** 2 + 1e-300)
+        scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))
+        bad = norm <= 1e-12 * scale * scale
         n[bad] = rel[bad]
         norm = np.linalg.norm(n, axis=1)
         n = np.divide(n, norm[:, None], out=np.tile([0.0, 0.0, 1.0], (c, 1)), where=norm[:, None] > 0)
         flip = np.einsum("cd,cd->c", n, rel) < 0
         n[flip] *= -1
-        return n, w
+        return n
 
-    def _lever_arms(self, vtx, body_q):
-        """For rigid-surface vertices ``vtx``: their bodies, world lever arms from the centre of
-        mass, and the bodies' world inverse inertia tensors R I^-1 R^T."""
-        sv = vtx - self.shape_offset
-        b = self.shape_body[sv]
-        rmat = quat_to_matrix(body_q[b, 3:7])
-        r = np.einsum("nij,nj->ni", rmat, self.shape_vertices[sv])
-        return b, r, rmat @ self.body_inv_inertia[b] @ np.swapaxes(rmat, 1, 2)
 
-    def _respond(self, idx, w, n, tois, x0p, vp, bq0, bq1, bv, x1p, h):
-        m = self.model
-        e = m.restitution
-        mu = m.friction
-        bq_now = bq0
-        vel = np.stack([self._vertex_velocity(idx[:, k], vp, bq_now, bv) for k in range(4)], 1)
-        vrel = np.einsum("ck,ckd->cd", w, vel)
-        vn = np.einsum("cd,cd->c", vrel, n)
-        approaching = vn < 0
-        # per-contact effective inverse mass: particles by w^2 / m, rigid vertices through the body
-        k_eff = np.zeros(len(idx))
-        for k in range(4):
-            vtx = idx[:, k]
-            is_p = vtx < self.shape_offset
-            k_eff[is_p] += w[is_p, k] ** 2 * self.particle_inv_mass[vtx[is_p]]
-            is_s = (vtx >= self.shape_offset) & (vtx < self.static_offset)
-            if is_s.any():
-                b, r, inv_i = self._lever_arms(vtx[is_s], bq_now)
-                rn = np.cross(r, n[is_s])
-                k_eff[is_s] += w[is_s, k] ** 2 * (self.body_inv_mass[b] + np.einsum("ni,nij,nj->n", rn, inv_i, rn))
-        ok = approaching & (k_eff > 0)
-        jn = np.zeros(len(idx))
-        jn[ok] = -(1.0 + e) * vn[ok] / k_eff[ok]
-        vt = vrel - vn[:, None] * n
-        vt_norm = np.linalg.norm(vt, axis=1)
-        tdir = np.divide(vt, vt_norm[:, None], out=np.zeros_like(vt), where=vt_norm[:, None] > 0)
-        jt = np.zeros(len(idx))
-        jt[ok] = np.minimum(mu * jn[ok], vt_norm[ok] / k_eff[ok])
-        impulse = jn[:, None] * n - jt[:, None] * tdir
-        # accumulate the earliest time of impact and the velocity change per particle / body
-        t_p = np.full(len(vp), np.inf)
-        t_b = np.full(len(bv), np.inf)
-        dvp = np.zeros_like(vp)
-        dbv = np.zeros_like(bv)
-        # simultaneous contacts are resolved Jacobi-style with averaging: each particle / body
-        # takes the mean of the velocity changes its contacts ask for (the sum would overshoot
-        # when one body touches many primitives at once); the outer iterations converge it
-        n_p = np.zeros(len(vp))
-        n_b = np.zeros(len(bv))
-        for k in range(4):
-            vtx = idx[:, k]
-            is_p = (vtx < self.shape_offset) & ok & (w[:, k] != 0)
-            np.add.at(n_p, vtx[is_p], 1.0)
-            is_s = (vtx >= self.shape_offset) & (vtx < self.static_offset) & ok & (w[:, k] != 0)
-            if is_s.any():
-                np.add.at(n_b, self.shape_body[vtx[is_s] - self.shape_offset], 1.0)
-        for k in range(4):
-            vtx = idx[:, k]
-            is_p = vtx < self.shape_offset
-            np.add.at(dvp, vtx[is_p], (w[is_p, k] * self.particle_inv_mass[vtx[is_p]])[:, None] * impulse[is_p])
-            np.minimum.at(t_p, vtx[is_p], tois[is_p])
-            is_s = (vtx >= self.shape_offset) & (vtx < self.static_offset)
-            if is_s.any():
-                b, r, inv_i = self._lever_arms(vtx[is_s], bq_now)
-                jb = w[is_s, k][:, None] * impulse[is_s]
-                np.add.at(dbv[:, 3:6], b, self.body_inv_mass[b][:, None] * jb)
-                np.add.at(dbv[:, 0:3], b, np.einsum("nij,nj->ni", inv_i, np.cross(r, jb)))
-                np.minimum.at(t_b, b, tois[is_s])
-        dvp /= np.maximum(n_p, 1.0)[:, None]
-        dbv /= np.maximum(n_b, 1.0)[:, None]
-        # time-of-impact integration: old velocity until t*, new one after
-        hit_p = np.isfinite(t_p)
-        if hit_p.any():
-            ts = t_p[hit_p] * h
-            v_minus = vp[hit_p].copy()
-            v_plus = v_minus + dvp[hit_p]
-            x1p[hit_p] = x0p[hit_p] + ts[:, None] * v_minus + (h - ts)[:, None] * v_plus
-            vp[hit_p] = v_plus
-        hit_b = np.isfinite(t_b)
-        if hit_b.any():
-            ts = t_b[hit_b] * h
-            v_minus = bv[hit_b].copy()
-            v_plus = v_minus + dbv[hit_b]
-            bq1[hit_b, :3] = bq0[hit_b, :3] + ts[:, None] * v_minus[:, 3:6] + (h - ts)[:, None] * v_plus[:, 3:6]
-            q_mid = quat_turn(bq0[hit_b, 3:7], v_minus[:, :3], ts)
-            bq1[hit_b, 3:7] = quat_turn(q_mid, v_plus[:, :3], h - ts)
-            bv[hit_b] = v_plus
+class _ImpactZones:
+    """Union-find over particles (nodes 0..P-1), bodies (P..P+B-1) and "the world" (P+B: static
+    vertices and pinned particles) for the rigid-impact-zone fail-safe of one substep."""
 
-    def _freeze(self, involved, x0p, bq0, x1p, bq1, frozen_p, frozen_b):
-        is_p = involved < self.shape_offset
-        frozen_p[involved[is_p]] = True
-        is_s = (involved >= self.shape_offset) & (involved < self.static_offset)
-        if is_s.any():
-            frozen_b[np.unique(self.shape_body[involved[is_s] - self.shape_offset])] = True
-        x1p[frozen_p] = x0p[frozen_p]
-        bq1[frozen_b] = bq0[frozen_b]
+    def __init__(self, n_particles: int, n_bodies: int, particle_inv_mass: np.ndarray) -> None:
+        self.P, self.B = n_particles, n_bodies
+        self.parent = np.arange(n_particles + n_bodies + 1)
+        self.world = n_particles + n_bodies
+        self.pinned = np.flatnonzero(particle_inv_mass[:n_particles] == 0)
+        self.particles = np.zeros(n_particles, dtype=bool)
+        self.bodies = np.zeros(n_bodies, dtype=bool)
+
+    def _find(self, i: int) -> int:
+        root = i
+        while self.parent[root] != root:
+            root = self.parent[root]
+        while self.parent[i] != root:
+            self.parent[i], i = root, self.parent[i]
+        return root
+
+    def merge(self, vertex_type: np.ndarray, vertex_owner: np.ndarray) -> bool:
+        """Joins the owners of each row of (C, 4) vertex types / owners into one zone; returns
+        whether any zone grew."""
+        grew = False
+        nodes = np.where(vertex_type == _PARTICLE, vertex_owner,
+                         np.where(vertex_type == _BODY, self.P + vertex_owner, self.world))
+        pinned = np.isin(vertex_owner, self.pinned) & (vertex_type == _PARTICLE)
+        nodes = np.where(pinned, self.world, nodes)
+        for row in nodes:
+            root = self._find(int(row[0]))
+            for node in row[1:]:
+                other = self._find(int(node))
+                if other != root:
+                    grew = True
+                    # the world stays a root so that zones touching it are recognised
+                    if other == self.world:
+                        self.parent[root] = other
+                        root = other
+                    else:
+                        self.parent[other] = root
+        for node in np.unique(nodes):
+            if node < self.P:
+                grew |= not self.particles[node]
+                self.particles[node] = True
+            elif node < self.world:
+                grew |= not self.bodies[node - self.P]
+                self.bodies[node - self.P] = True
+        return bool(grew)
+
+    def rigid_velocities(self, x0p, vp, bq0, bv, particle_inv_mass, body_mass, body_inertia_w) -> None:
+        """Overwrites the velocities of zone members with their zone's rigid motion (in place)."""
+        members_p = np.flatnonzero(self.particles)
+        members_b = np.flatnonzero(self.bodies)
+        roots_p = np.array([self._find(int(i)) for i in members_p], dtype=np.int64)
+        roots_b = np.array([self._find(int(self.P + i)) for i in members_b], dtype=np.int64)
+        for root in np.unique(np.concatenate([roots_p, roots_b])):
+            zp = members_p[roots_p == root]
+            zb = members_b[roots_b == root]
+            if root == self.world:
+                vp[zp] = 0.0
+                bv[zb] = 0.0
+                continue
+            mp = np.divide(1.0, particle_inv_mass[zp], out=np.zeros(len(zp)), where=particle_inv_mass[zp] > 0)
+            mb = body_mass[zb]
+            mass = mp.sum() + mb.sum()
+            centre = (mp @ x0p[zp] + mb @ bq0[zb, :3]) / mass
+            momentum = mp @ vp[zp] + mb @ bv[zb, 3:6]
+            rp = x0p[zp] - centre
+            rb = bq0[zb, :3] - centre
+            angular = (np.cross(rp, vp[zp]) * mp[:, None]).sum(0) + (np.cross(rb, bv[zb, 3:6]) * mb[:, None]).sum(0)
+            angular += np.einsum("bij,bj->i", body_inertia_w[zb], bv[zb, :3])
+            eye = np.eye(3)
+            inertia = np.einsum("p,pij->ij", mp, (rp * rp).sum(1)[:, None, None] * eye - rp[:, :, None] * rp[:, None, :])
+            inertia += body_inertia_w[zb].sum(0)
+            inertia += np.einsum("b,bij->ij", mb, (rb * rb).sum(1)[:, None, None] * eye - rb[:, :, None] * rb[:, None, :])
+            omega = np.linalg.pinv(inertia) @ angular  # pinv: a zone of collinear particles
+            linear = momentum / mass
+            vp[zp] = linear + np.cross(omega, rp)
+            bv[zb, 3:6] = linear + np.cross(omega, rb)
+            bv[zb, :3] = omega
+
+
+def _replace_head(full: wp.array, head: np.ndarray, dtype, device) -> wp.array:
+    """A fresh array equal to ``full`` with its first ``len(head)`` rows replaced."""
+    if full.shape[0] == 0:
+        return full
+    arr = full.numpy().copy()
+    arr[: len(head)] = head
+    return wp.array(arr, dtype=dtype, device=device)
 
 
 def _barycentric(p, a, b, c):

@@ -110,6 +110,52 @@ class Model:
     friction: float = 0.5
     thickness: float = 0.0
 
+    def scaled(self, factor: float) -> Model:
+        """The same scene with every length multiplied by ``factor`` (> 0, finite) and the
+        masses and times kept: positions, rest lengths, thickness, plane offsets and gravity
+        scale by ``factor``, velocities too, inertia tensors by ``factor**2`` (so densities
+        scale by ``factor**-2`` per area and ``factor**-3`` per volume); spring stiffness and
+        damping [N/m = kg/s^2, N s/m = kg/s] are unchanged. The motion of the scaled model is the
+        original one scaled, which tests scale invariance (e.g. scenes at 1e-3 and 1e3)."""
+        import dataclasses
+
+        f = float(factor)
+        if not np.isfinite(f) or f <= 0.0:
+            raise ValueError(f"factor must be positive and finite, got {factor!r}")
+
+        def mul(a, k):
+            if a is None:
+                return None
+            if a.dtype == wp.transformd:  # (position, quaternion): only the position scales
+                v = a.numpy().copy()
+                v[:, :3] *= k
+                return wp.array(v, dtype=a.dtype, device=a.device)
+            if a.dtype == wp.spatial_vectord:  # (angular, linear): only the linear part scales
+                v = a.numpy().copy()
+                v[:, 3:] *= k
+                return wp.array(v, dtype=a.dtype, device=a.device)
+            if a.dtype == wp.vec4d:  # planes (normal, offset)
+                v = a.numpy().copy()
+                v[:, 3] *= k
+                return wp.array(v, dtype=a.dtype, device=a.device)
+            return wp.array(a.numpy() * k, dtype=a.dtype, device=a.device)
+
+        return dataclasses.replace(
+            self,
+            gravity=np.asarray(self.gravity, dtype=np.float64) * f,
+            particle_q=mul(self.particle_q, f),
+            particle_qd=mul(self.particle_qd, f),
+            spring_rest_length=mul(self.spring_rest_length, f),
+            body_q=mul(self.body_q, f),
+            body_qd=mul(self.body_qd, f),
+            body_inertia=mul(self.body_inertia, f * f),
+            body_inv_inertia=mul(self.body_inv_inertia, 1.0 / (f * f)),
+            shape_vertices=mul(self.shape_vertices, f),
+            static_vertices=mul(self.static_vertices, f),
+            planes=mul(self.planes, f),
+            thickness=self.thickness * f,
+        )
+
     def state(self, requires_grad: bool = False) -> State:
         """A new :class:`State` holding copies of the model's initial positions and velocities."""
 

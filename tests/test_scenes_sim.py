@@ -34,7 +34,7 @@ SUMMARY_FIELDS = (
 COMPONENTS = {
     "cloth_drop": ["cloth", "static"],
     "rigid_toss": ["rigid", "static"],
-    "cloth_rigid": ["cloth", "rigid"],
+    "cloth_rigid": ["cloth", "rigid", "static"],
 }
 
 
