@@ -8,7 +8,10 @@ Usage::
                            --max-derivative M for the optimisation scenes]
     python -m scenes NAME --help
 
-The run writes a rerun recording to ``PATH.rrd`` (atomically: nothing is left behind on error),
+The run writes a rerun recording to ``PATH.rrd`` atomically: bad input (caught while the scene is
+built, before the first frame) leaves nothing behind; once a simulation scene starts stepping, an
+interruption (Ctrl-C, an error) keeps the frames recorded so far as a complete, readable file whose
+``/status`` says where it stopped (exit code 130 or 1). It
 shows a tqdm progress bar on stderr when stderr is a terminal, and ends by printing exactly one
 line of JSON (the scene's summary plus ``wall_time_s`` and ``out``) to stdout. Everything else a
 run prints (Warp's start-up banner, kernel compilation notes) is diverted to stderr, so stdout is
@@ -85,6 +88,14 @@ def _stdout_to_stderr() -> Iterator[None]:
         os.close(saved)
 
 
+def _what_was_written(out: Path) -> str:
+    """Simulation scenes keep the frames recorded before an interruption (the logger's
+    ``keep_partial`` is switched on once the input is validated and stepping starts)."""
+    if out.exists():
+        return f"the frames recorded so far are in {out} (its /status says where it stopped)"
+    return f"no recording written to {out}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point.
 
@@ -132,11 +143,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 text = json.dumps(jsonable(summary), allow_nan=False)
                 log.log_text("/summary", text)
     except KeyboardInterrupt:
-        print("interrupted; no recording written", file=sys.stderr)
+        print(f"interrupted; {_what_was_written(out)}", file=sys.stderr)
         return 130
     except Exception:
         traceback.print_exc()
-        print(f"{PROG} {name}: failed; no recording written to {out}", file=sys.stderr)
+        print(f"{PROG} {name}: failed; {_what_was_written(out)}", file=sys.stderr)
         return 1
     print(text, flush=True)
     return 0

@@ -1,7 +1,7 @@
 """Scene ``cloth_drop``: a square cloth falls onto a static sphere and a static box on the ground.
 
 A 16 x 16-cell cloth (0.8 m square, areal density 0.2 kg/m^2, springs: stretch 20, shear 10,
-bending 1 N/m, spring damping 0.02 N s/m) starts flat and at rest 0.7 m above the ground and falls onto a static
+bending 1 N/m, spring damping 0.01 N s/m) starts flat and at rest 0.7 m above the ground and falls onto a static
 icosphere (radius 0.2 m, centre (0, 0, 0.2), resting on the ground) and a static box (0.1 m half
 extents, centre (0.35, 0, 0.1)) beside it; a ground plane z = 0 catches the rest. Restitution 0,
 friction 0.3. Components: cloth, static.
@@ -41,7 +41,7 @@ def build(builder: Any, args: argparse.Namespace) -> None:
     corner = (CLOTH_CENTRE_XY[0] - CLOTH_SIZE / 2, CLOTH_CENTRE_XY[1] - CLOTH_SIZE / 2, CLOTH_HEIGHT)
     builder.add_cloth_grid(
         corner, None, CLOTH_CELLS, CLOTH_CELLS, cell, cell,
-        density=0.2, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.02,
+        density=0.2, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
     )
     builder.add_static_mesh(*icosphere(SPHERE_RADIUS, 2), pos=SPHERE_CENTRE)
     builder.add_static_mesh(*box_mesh(BOX_HALF), pos=BOX_CENTRE)

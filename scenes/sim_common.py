@@ -18,6 +18,7 @@ potential (gravity ``-m g . x`` with the origin as reference, springs ``k (l - l
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import sys
 import time
@@ -192,6 +193,10 @@ def simulate(
     rep0 = checker.check(state)
     if rep0.count:
         raise RuntimeError(f"{name}: the initial state already has {rep0.count} penetrations")
+    if log is not None and hasattr(log, "keep_partial"):
+        # the input is valid and stepping starts: from here an interruption (Ctrl-C, an error)
+        # keeps the frames recorded so far as a complete, readable file
+        log.keep_partial = True
     e_max = e0
     total_contacts = 0
     max_pen = 0
@@ -240,6 +245,9 @@ def simulate(
     e_end = kin + pot
     scale = abs(e0) if abs(e0) > 0 else 1.0
     final = state.numpy()
+    digest = hashlib.sha256()
+    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+        digest.update(np.ascontiguousarray(final[key]).tobytes())
     summary = {
         "scene": name,
         "steps": steps,
@@ -263,6 +271,7 @@ def simulate(
         "energy_max_ratio": e_max / e0 if e0 > 0 else None,
         "energy_finite": bool(finite and math.isfinite(e_end)),
         "failsafe_count": int(handler.failsafe_count),
+        "state_sha256": digest.hexdigest(),
     }
     return summary, final
 

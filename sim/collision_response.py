@@ -70,6 +70,10 @@ SOLVER_TOLERANCE = 0.05
 """Stop the Gauss-Seidel sweeps when no contact's normal velocity is below its target by more than this
 fraction of the separation speed ``SEPARATION_RATE delta / h``."""
 
+TOUCHING_RELATIVE = 1e-6
+"""Proximity pairs closer than this fraction of the separation count as touching: their offset
+direction is rounding noise, so the normal comes from the primitives' geometry instead."""
+
 APPROACH_EPS = 1e-12
 """A CCD hit counts as approaching when its normal relative velocity is below ``-APPROACH_EPS``
 times the contact's largest vertex speed plus the separation speed (float64 rounding of a
@@ -440,11 +444,26 @@ class ImpulseCollisionHandler:
                 vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
                 vrel = np.einsum("ck,ckd->cd", w, vel)
                 n = np.divide(off, d[:, None], out=np.zeros_like(off), where=d[:, None] > 0)
-                # touching exactly: no side is known, oppose the relative motion (else +z)
-                zero = d <= 0
-                if zero.any():
-                    speed = np.linalg.norm(vrel[zero], axis=1, keepdims=True)
-                    n[zero] = np.where(speed > 0, -vrel[zero] / np.where(speed > 0, speed, 1.0), [0.0, 0.0, 1.0])
+                # touching (closer than rounding can resolve): the offset has no reliable
+                # direction; take the face normal / the edges' normal, turned against the
+                # relative motion (a resting vertex pressed down by gravity gets "up")
+                touching = d <= TOUCHING_RELATIVE * delta
+                if touching.any():
+                    y = x0[idx[touching]]
+                    geo = np.where(
+                        ee_mask[touching, None],
+                        np.cross(y[:, 1] - y[:, 0], y[:, 3] - y[:, 2]),
+                        np.cross(y[:, 2] - y[:, 1], y[:, 3] - y[:, 1]),
+                    )
+                    v = vrel[touching]
+                    speed = np.linalg.norm(v, axis=1, keepdims=True)
+                    fallback = np.where(speed > 0, -v / np.where(speed > 0, speed, 1.0), [0.0, 0.0, 1.0])
+                    size = np.linalg.norm(geo, axis=1, keepdims=True)
+                    scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))[:, None]
+                    ok = size > 1e-12 * scale * scale
+                    geo = np.where(ok, geo / np.where(ok, size, 1.0), fallback)
+                    geo = np.where(np.einsum("cd,cd->c", geo, v)[:, None] > 0, -geo, geo)
+                    n[touching] = geo
                 vn = np.einsum("cd,cd->c", vrel, n)
                 target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
                 cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
