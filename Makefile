@@ -22,6 +22,7 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m scenes paper_cubic --out paper_cubic.rrd
 	$(PY) -m scenes paper_quadratic --out paper_quadratic.rrd
+	$(PY) -m scenes cloth_rigid --out cloth_rigid.rrd --steps 240
 
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
@@ -29,6 +30,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/roots.py
 	$(PY) benchmarks/ccd.py --max-iterations 1000000 --generated --mesh
+	$(PY) benchmarks/sim.py
 
 fuzz: $(STAMP)
 	$(PY) benchmarks/fuzz_roots.py

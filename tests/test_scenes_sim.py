@@ -130,3 +130,46 @@ def test_cli_options():
     assert cloth_drop.SUPPORTS_STEPS and cloth_drop.PRECISIONS == ("float64",)
     with pytest.raises(SystemExit):
         parser.parse_args(["--substeps", "0"])
+
+
+def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
+    """A scene whose geometry is bad (a NaN vertex) fails while it is built, before the first
+    frame: exit code 1, an error naming the argument, and no recording left behind."""
+    from scenes.__main__ import main
+
+    def bad_build(builder, args):
+        from sim.mesh_io import box_mesh
+
+        v, t = box_mesh(0.1)
+        v[3, 2] = np.nan
+        builder.add_static_mesh(v, t)
+
+    monkeypatch.setattr(cloth_drop, "build", bad_build)
+    out = tmp_path / "bad.rrd"
+    assert main(["cloth_drop", "--out", str(out), "--steps", "2"]) == 1
+    assert not out.exists()
+    assert not list(tmp_path.iterdir())  # no temporary file either
+
+
+def test_interrupted_run_keeps_a_readable_partial_recording(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during stepping: exit code 130 and the frames recorded so far stay readable."""
+    from scenes.__main__ import main
+    from sim.integrator import SemiImplicitIntegrator
+
+    real_step = SemiImplicitIntegrator.step
+    calls = {"n": 0}
+
+    def step(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(SemiImplicitIntegrator, "step", step)
+    out = tmp_path / "partial.rrd"
+    assert main(["rigid_toss", "--out", str(out), "--steps", "50"]) == 130
+    assert "frames recorded so far" in capsys.readouterr().err
+    rows = read_rrd(out)
+    assert rows.get("/metrics/energy/total", 0) == 3
+    assert rows.get("/status", 0) >= 1
+    assert [p.name for p in tmp_path.iterdir()] == ["partial.rrd"]
