@@ -18,6 +18,17 @@ Definitions:
   within one body are kept only where ``self_collision`` allows it; a ``static`` body never collides
   with itself nor with another static body.
 
+Algorithm: faces and edges are sorted by body once (a stable permutation, kept internally; the
+inputs, ``BroadPhase.faces`` / ``edges`` and the returned indices stay in the caller's numbering).
+Each body with faces (edges) gets its own Warp BVH over its slice of the body-sorted face (edge)
+boxes, built only if some body may collide with it. Every vertex queries the face BVH of each body
+``h`` the body rules allow for its own body ``g``; an edge of body ``g`` queries the edge BVH of body
+``h`` only if ``g <= h`` and the rules allow ``(g, h)``, so each pair of bodies is searched once, and
+within one body (self-collision) only edges after it in the caller's order are kept. The query
+primitives of forbidden bodies return before traversing: a body without self-collision never walks
+its own dense neighbourhood, and two static bodies never meet. The trees are rebuilt every
+``rebuild_every`` queries and refitted (same topology, new boxes) in between.
+
 Conservative float32 boxes (Warp's BVH is float32): each float64 box coordinate ``c`` of a box whose
 largest magnitude on that axis is ``m`` becomes ``fl32(c -/+ (m * 2^-21 + 2^-126))`` (lower bounds
 move down, upper bounds up; clamped to +-FLT_MAX first). Rounding to float32 moves a number by at
@@ -241,29 +252,72 @@ class BroadPhase:
         self_flags = self_flags & (1 - static_flags)  # a static body never collides with itself
 
         dev = self.device
-        self._faces = wp.array(self.faces, dtype=wp.vec3i, device=dev)
-        self._edges = wp.array(self.edges, dtype=wp.vec2i, device=dev)
+        # Body-sorted copies (stable): the primitives of one body are contiguous, each body with
+        # faces (edges) gets its own BVH over its slice of the sorted boxes, and the *_index arrays
+        # map a sorted position back to the caller's numbering.
+        vertex_order = np.argsort(g, kind="stable").astype(np.int32)
+        face_order = np.argsort(face_body, kind="stable").astype(np.int32)
+        edge_order = np.argsort(edge_body, kind="stable").astype(np.int32)
+        face_body_s = np.ascontiguousarray(face_body[face_order], dtype=np.int32)
+        edge_body_s = np.ascontiguousarray(edge_body[edge_order], dtype=np.int32)
+        self._vertex_order = wp.array(vertex_order, dtype=wp.int32, device=dev)
         self._vertex_body = wp.array(g, dtype=wp.int32, device=dev)
-        self._face_body = wp.array(np.ascontiguousarray(face_body, dtype=np.int32), dtype=wp.int32, device=dev)
-        self._edge_body = wp.array(np.ascontiguousarray(edge_body, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._faces = wp.array(np.ascontiguousarray(self.faces[face_order]), dtype=wp.vec3i, device=dev)
+        self._face_index = wp.array(face_order, dtype=wp.int32, device=dev)
+        self._edges = wp.array(np.ascontiguousarray(self.edges[edge_order]), dtype=wp.vec2i, device=dev)
+        self._edge_index = wp.array(edge_order, dtype=wp.int32, device=dev)
+        self._edge_body = wp.array(edge_body_s, dtype=wp.int32, device=dev)
         self._self_ok = wp.array(self_flags, dtype=wp.int32, device=dev)
         self._static = wp.array(static_flags, dtype=wp.int32, device=dev)
+
+        def may_collide(bodies: np.ndarray, tree: int) -> np.ndarray:
+            """The body rule of ``kernels.broad_phase.bodies_may_collide`` for many query bodies."""
+            other = (bodies != tree) & ~((static_flags[bodies] != 0) & (static_flags[tree] != 0))
+            return other | ((bodies == tree) & (self_flags[tree] != 0))
+
+        def plans(tree_sorted_body: np.ndarray, query_sorted_body: np.ndarray, lower_only: bool):
+            """One ``(tree_body, leaf_start, leaf_end, query_start, query_count)`` per body whose
+            tree some query primitive may pair with; the queries are the sorted range from the
+            first to the last allowed query body (forbidden bodies inside it return early)."""
+            out = []
+            q_bodies, q_start, q_count = np.unique(query_sorted_body, return_index=True, return_counts=True)
+            t_bodies, t_start, t_count = np.unique(tree_sorted_body, return_index=True, return_counts=True)
+            for h, ts, tc in zip(t_bodies.tolist(), t_start.tolist(), t_count.tolist()):
+                ok = may_collide(q_bodies, h)
+                if lower_only:
+                    ok &= q_bodies <= h
+                    if tc < 2:  # a lone edge has no partner in its own body
+                        ok &= q_bodies != h
+                idx = np.flatnonzero(ok)
+                if len(idx):
+                    first, last = int(idx[0]), int(idx[-1])
+                    qs = int(q_start[first])
+                    out.append((h, ts, ts + tc, qs, int(q_start[last] + q_count[last]) - qs))
+            return out
+
+        vertex_body_s = g[vertex_order] if nv else np.zeros(0, dtype=np.int32)
+        self._vf_plans = plans(face_body_s, vertex_body_s, lower_only=False)
+        self._ee_plans = plans(edge_body_s, edge_body_s, lower_only=True)
 
         nf, ne = len(self.faces), len(self.edges)
         self._v_lo = wp.empty(nv, dtype=wp.vec3, device=dev)
         self._v_hi = wp.empty(nv, dtype=wp.vec3, device=dev)
+        # face / edge boxes in body-sorted order; every body's BVH reads its contiguous slice (a view)
         self._f_lo = wp.empty(nf, dtype=wp.vec3, device=dev)
         self._f_hi = wp.empty(nf, dtype=wp.vec3, device=dev)
         self._e_lo = wp.empty(ne, dtype=wp.vec3, device=dev)
         self._e_hi = wp.empty(ne, dtype=wp.vec3, device=dev)
         self._eq_lo = wp.empty(ne, dtype=wp.vec3, device=dev)
         self._eq_hi = wp.empty(ne, dtype=wp.vec3, device=dev)
+        self._xa = wp.empty(nv, dtype=wp.vec3d, device=dev)  # positions, copied in by every query
+        self._xb = wp.empty(nv, dtype=wp.vec3d, device=dev)
         self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._cmds: dict = {}  # recorded launches, see _launch
         # output buffers grow on overflow and are kept for the next query
         self._vf_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * nv + 64, dtype=wp.vec2i, device=dev)
         self._ee_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * ne + 64, dtype=wp.vec2i, device=dev)
-        self._face_bvh = None
-        self._edge_bvh = None
+        self._face_bvhs: list[wp.Bvh] | None = None  # one per entry of _vf_plans
+        self._edge_bvhs: list[wp.Bvh] | None = None  # one per entry of _ee_plans
         self._queries_since_build = 0
         self.rebuild_every = int(rebuild_every)
         if self.rebuild_every < 1:
@@ -307,57 +361,84 @@ class BroadPhase:
             return empty, empty.copy()
         if rebuild is None:
             rebuild = self._queries_since_build >= self.rebuild_every
-        if rebuild or (nf and self._face_bvh is None) or (ne > 1 and self._edge_bvh is None):
+        if rebuild or self._face_bvhs is None or self._edge_bvhs is None:
             rebuild = True
             self._queries_since_build = 0
         self._queries_since_build += 1
 
-        dev = self.device
-        xa = wp.array(a, dtype=wp.vec3d, device=dev)
-        xb = wp.array(b, dtype=wp.vec3d, device=dev)
-        inf64 = wp.float64(infl)
+        xa, xb = self._xa, self._xb
+        xa.assign(a)
+        xb.assign(b)
 
         vf = empty
-        if nf:
-            wp.launch(
-                _k.vertex_boxes_kernel, dim=nv, inputs=[xa, xb, inf64], outputs=[self._v_lo, self._v_hi], device=dev
-            )
-            wp.launch(
-                _k.face_boxes_kernel, dim=nf, inputs=[xa, xb, self._faces], outputs=[self._f_lo, self._f_hi], device=dev
-            )
-            if rebuild:
-                self._face_bvh = wp.Bvh(self._f_lo, self._f_hi)
-            else:
-                self._face_bvh.refit()
-            inputs = [self._face_bvh.id, self._v_lo, self._v_hi, self._faces, self._vertex_body, self._face_body]
-            vf, self._vf_buf = self._pairs(_k.vertex_face_pairs_kernel, nv, inputs, self._vf_buf)
+        if self._vf_plans:
+            self._launch("v_box", _k.vertex_boxes_kernel, nv, [xa, xb, infl, self._v_lo, self._v_hi])
+            self._launch("f_box", _k.face_boxes_kernel, nf, [xa, xb, self._faces, self._f_lo, self._f_hi])
+            self._face_bvhs = self._fit(self._face_bvhs, self._vf_plans, self._f_lo, self._f_hi, rebuild)
+            shared = [self._vertex_order, self._v_lo, self._v_hi, self._vertex_body, self._faces, self._face_index]
+            launches = [
+                (("vf", i), _k.vertex_face_pairs_kernel, qn, [bvh.id, h, ls, qs, *shared])
+                for i, (bvh, (h, ls, _le, qs, qn)) in enumerate(zip(self._face_bvhs, self._vf_plans))
+            ]
+            vf, self._vf_buf = self._pairs(launches, self._vf_buf)
+        elif self._face_bvhs is None:
+            self._face_bvhs = []
         ee = empty.copy()
-        if ne > 1:
-            wp.launch(
-                _k.edge_boxes_kernel,
-                dim=ne,
-                inputs=[xa, xb, self._edges, inf64],
-                outputs=[self._e_lo, self._e_hi, self._eq_lo, self._eq_hi],
-                device=dev,
-            )
-            if rebuild:
-                self._edge_bvh = wp.Bvh(self._e_lo, self._e_hi)
-            else:
-                self._edge_bvh.refit()
-            inputs = [self._edge_bvh.id, self._eq_lo, self._eq_hi, self._edges, self._edge_body]
-            ee, self._ee_buf = self._pairs(_k.edge_edge_pairs_kernel, ne, inputs, self._ee_buf)
+        if self._ee_plans:
+            outputs = [self._e_lo, self._e_hi, self._eq_lo, self._eq_hi]
+            self._launch("e_box", _k.edge_boxes_kernel, ne, [xa, xb, self._edges, infl, *outputs])
+            self._edge_bvhs = self._fit(self._edge_bvhs, self._ee_plans, self._e_lo, self._e_hi, rebuild)
+            shared = [self._eq_lo, self._eq_hi, self._edges, self._edge_index, self._edge_body]
+            launches = [
+                (("ee", i), _k.edge_edge_pairs_kernel, qn, [bvh.id, h, ls, qs, *shared])
+                for i, (bvh, (h, ls, _le, qs, qn)) in enumerate(zip(self._edge_bvhs, self._ee_plans))
+            ]
+            ee, self._ee_buf = self._pairs(launches, self._ee_buf)
+        elif self._edge_bvhs is None:
+            self._edge_bvhs = []
         return vf, ee
 
-    def _pairs(self, kernel, n: int, inputs: list, buf: wp.array) -> tuple[np.ndarray, wp.array]:
-        """One launch into ``buf``; on overflow grow it to the exact count and launch again.
+    @staticmethod
+    def _fit(bvhs: list | None, plans: list, lo: wp.array, hi: wp.array, rebuild: bool) -> list:
+        """Per-body BVHs over the slices ``lo[s:e]``, ``hi[s:e]`` of the plans: built anew when
+        ``rebuild`` (or none exist yet), else refitted (each tree keeps its slice views, which share
+        memory with ``lo`` / ``hi``, so a refit reads the boxes just written)."""
+        if rebuild or bvhs is None:
+            return [wp.Bvh(lo[s:e], hi[s:e]) for (_h, s, e, _qs, _qn) in plans]
+        for bvh in bvhs:
+            bvh.refit()
+        return bvhs
+
+    def _launch(self, key, kernel, dim: int, args: list) -> None:
+        """``wp.launch(kernel, dim, inputs=args)`` through a command recorded on the first call
+        with this ``key`` (``dim`` is fixed per key). Replaying it skips Warp's per-launch argument
+        packing (tens of microseconds, more than most of these kernels take); only the arguments
+        that changed since the last launch (another array object, another scalar value) are set.
+        """
+        entry = self._cmds.get(key)
+        if entry is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
+            self._cmds[key] = (cmd, list(args))
+        else:
+            cmd, last = entry
+            for i, (new, old) in enumerate(zip(args, last)):
+                if new is not old and (isinstance(new, wp.array) or new != old):
+                    cmd.set_param_at_index(i, new)
+                    last[i] = new
+        cmd.launch()
+
+    def _pairs(self, launches: list, buf: wp.array) -> tuple[np.ndarray, wp.array]:
+        """The launches ``(key, kernel, dim, inputs)`` into ``buf`` through one shared counter; on
+        overflow grow it to the exact count and launch them all again.
 
         Returns the pairs (int64, sorted lexicographically) and the buffer to keep.
         """
         dev = self.device
-        args = [*inputs, self._self_ok, self._static]
+        tail = [self._self_ok, self._static, self._counter]
         for _attempt in range(2):
             self._counter.zero_()
-            wp.launch(kernel, dim=n, inputs=[*args, self._counter, buf], device=dev)
+            for key, kernel, dim, inputs in launches:
+                self._launch(key, kernel, dim, [*inputs, *tail, buf])
             total = int(self._counter.numpy()[0])
             if total < 0:
                 raise RuntimeError("broad phase: more than 2^31 candidate pairs; reduce inflation")
@@ -365,7 +446,7 @@ class BroadPhase:
                 break
             buf = wp.empty(total + total // 4, dtype=wp.vec2i, device=dev)
         out = buf.numpy()[:total].astype(np.int64)
-        # grouped by query primitive on the CPU, any order on a GPU: sort for a deterministic result
+        # grouped by query primitive and tree on the CPU, any order on a GPU: sort for a deterministic result
         order = np.lexsort((out[:, 1], out[:, 0]))
         return out[order], buf
 

@@ -5,11 +5,17 @@ box of its vertices at ``t0`` and ``t1``. Positions are float64; Warp's BVH stor
 every float64 box coordinate is widened outwards before it is rounded (see :func:`lower32` /
 :func:`upper32` for the padding rule and why it is conservative).
 
+There is one BVH per body (over that body's faces or edges, stored in body-sorted order); the pair
+kernels query one body's tree per launch and map tree leaves back to the caller's numbering through
+an int32 index array. A query primitive whose body may not collide with the tree's body returns
+before the traversal.
+
 Pairs are written in one pass into a fixed-capacity buffer through an atomic counter: the counter
 keeps counting past the capacity, so after the launch it holds the exact number of pairs; when it
 exceeds the capacity the caller grows the buffer to that size and launches again (the writes beyond
-the capacity were dropped, never out of bounds). Rows come out grouped by query primitive on the
-CPU (serial launch) and in any order on a GPU; the Python API sorts them.
+the capacity were dropped, never out of bounds). The launches for the trees of all bodies share one
+counter and buffer. Rows come out grouped by tree and query primitive on the CPU (serial launches)
+and in any order on a GPU; the Python API sorts them.
 
 Body rules (per-body int32 flags, indexed by body id):
 
@@ -146,56 +152,79 @@ def emit(counter: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.vec2i), i: 
 @wp.kernel
 def vertex_face_pairs_kernel(
     bvh: wp.uint64,
+    tree_body: int,
+    leaf_start: int,
+    query_start: int,
+    vertex_order: wp.array(dtype=wp.int32),
     query_lo: wp.array(dtype=wp.vec3),
     query_hi: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.vec3i),
     vertex_body: wp.array(dtype=wp.int32),
-    face_body: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.vec3i),
+    face_index: wp.array(dtype=wp.int32),
     self_ok: wp.array(dtype=wp.int32),
     is_static: wp.array(dtype=wp.int32),
     counter: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
 ):
-    """Per vertex: faces of the face BVH whose box overlaps the vertex's query box, minus the faces
-    containing the vertex and pairs the body rules forbid, appended to ``pairs`` via ``counter``."""
-    v = wp.tid()
-    bv = int(vertex_body[v])
+    """Vertices against the face BVH of one body (``tree_body``), appended to ``pairs`` via ``counter``.
+
+    Thread ``t`` handles vertex ``v = vertex_order[query_start + t]`` (``vertex_order``: vertices
+    sorted by body; ``query_lo`` / ``query_hi`` / ``vertex_body`` indexed by ``v``). It returns before
+    the traversal when the body rules forbid ``(vertex_body[v], tree_body)``. Leaf ``j`` of the tree is
+    face ``leaf_start + j`` of the body-sorted ``faces``; ``face_index`` maps a sorted face back to the
+    caller's numbering, which is what is written: rows ``(v, original face)``, minus faces that
+    contain ``v``."""
+    v = int(vertex_order[query_start + wp.tid()])
+    if not bodies_may_collide(int(vertex_body[v]), tree_body, self_ok, is_static):
+        return
     query = wp.bvh_query_aabb(bvh, query_lo[v], query_hi[v])
-    f = int(0)
-    while wp.bvh_query_next(query, f):
+    j = int(0)
+    while wp.bvh_query_next(query, j):
+        f = leaf_start + j
         tri = faces[f]
         if tri[0] == v or tri[1] == v or tri[2] == v:
             continue
-        if not bodies_may_collide(bv, int(face_body[f]), self_ok, is_static):
-            continue
-        emit(counter, pairs, v, f)
+        emit(counter, pairs, v, int(face_index[f]))
 
 
 @wp.kernel
 def edge_edge_pairs_kernel(
     bvh: wp.uint64,
+    tree_body: int,
+    leaf_start: int,
+    query_start: int,
     query_lo: wp.array(dtype=wp.vec3),
     query_hi: wp.array(dtype=wp.vec3),
     edges: wp.array(dtype=wp.vec2i),
+    edge_index: wp.array(dtype=wp.int32),
     edge_body: wp.array(dtype=wp.int32),
     self_ok: wp.array(dtype=wp.int32),
     is_static: wp.array(dtype=wp.int32),
     counter: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
 ):
-    """Per edge ``a``: edges ``b > a`` of the edge BVH whose box overlaps ``a``'s query box, minus
-    edges sharing a vertex with ``a`` and pairs the body rules forbid, appended as above."""
-    a = wp.tid()
-    ea = edges[a]
+    """Edges against the edge BVH of one body (``tree_body``), appended as above.
+
+    Every array is in body-sorted edge order; ``edge_index`` maps it back to the caller's numbering.
+    Thread ``t`` handles sorted edge ``a = query_start + t`` of body ``ba``; it returns before the
+    traversal unless ``ba <= tree_body`` and the body rules allow ``(ba, tree_body)``, so a pair of
+    two bodies is searched once, from the lower body. Leaf ``j`` is sorted edge ``b = leaf_start + j``;
+    within one body only ``b > a`` is kept (the sort is stable, so this is ``original b > original a``).
+    Edges sharing a vertex with ``a`` are skipped; rows are ``(min, max)`` of the original indices."""
+    a = query_start + wp.tid()
     ba = int(edge_body[a])
+    if ba > tree_body or not bodies_may_collide(ba, tree_body, self_ok, is_static):
+        return
+    ea = edges[a]
     query = wp.bvh_query_aabb(bvh, query_lo[a], query_hi[a])
-    b = int(0)
-    while wp.bvh_query_next(query, b):
-        if b <= a:
+    j = int(0)
+    while wp.bvh_query_next(query, j):
+        b = leaf_start + j
+        if b <= a:  # same body: each pair once; other body (b > a always): never taken
             continue
         eb = edges[b]
         if ea[0] == eb[0] or ea[0] == eb[1] or ea[1] == eb[0] or ea[1] == eb[1]:
             continue
-        if not bodies_may_collide(ba, int(edge_body[b]), self_ok, is_static):
-            continue
-        emit(counter, pairs, a, b)
+        ia = int(edge_index[a])
+        ib = int(edge_index[b])
+        emit(counter, pairs, wp.min(ia, ib), wp.max(ia, ib))

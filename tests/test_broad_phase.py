@@ -261,6 +261,82 @@ def test_static_bodies_never_collide_with_each_other():
             assert n_vf > 0 and n_ee > 0  # the overlap is real: only the static rule removes it
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_many_bodies_mixed_flags_match_reference(seed):
+    """Several bodies (per-body BVHs) with interleaved numbering against the brute-force reference.
+
+    Bodies: 0 a cloth with self-collision, 1 a deforming sphere, 2 and 3 static (overlapping each
+    other), 4 loose vertices with no face, 5 unused (no vertex), 6 a single free triangle with a
+    lone extra edge. Vertex ids, faces and edges are shuffled so no body is contiguous in the
+    caller's numbering (the body sort and the index maps back must be exact); a reused BroadPhase
+    refits and rebuilds the per-body trees over moving steps, with changing inflation and a pair
+    buffer that grows mid-run, and matches a fresh query each time.
+    """
+    rng = np.random.default_rng(300 + seed)
+    xc, fc = grid(9, 1.2, 0.2)
+    xs, fs = icosphere(1, 0.35)
+    xa, fa = icosphere(1, 0.3)
+    xb, fb = grid(6, 1.0, -0.05)
+    xl = rng.uniform(-0.6, 0.6, (25, 3))
+    xt = np.array([[0.0, 0.0, 0.1], [0.3, 0.0, 0.1], [0.0, 0.3, 0.1], [0.2, 0.2, 0.05]])
+    parts = [(xc, fc, 0), (xs + [0.1, 0.0, 0.3], fs, 1), (xa, fa, 2), (xb, fb, 3), (xl, None, 4), (xt, [[0, 1, 2]], 6)]
+    x0, faces, edges, groups = [], [], [], []
+    n = 0
+    for x, f, body in parts:
+        x0.append(x)
+        groups.append(np.full(len(x), body))
+        if f is not None:
+            f = np.asarray(f) + n
+            faces.append(f)
+            edges.append(mesh_edges(f))
+        n += len(x)
+    edges.append([[n - 2, n - 1]])  # body 6: an edge that belongs to no face
+    x0, groups = np.concatenate(x0), np.concatenate(groups)
+    faces, edges = np.concatenate(faces), np.concatenate(edges)
+    # shuffle vertex ids, face order, edge order and edge direction
+    perm = rng.permutation(len(x0))  # new id of old vertex i is inv[i]
+    inv = np.argsort(perm)
+    x0, groups = x0[perm], groups[perm]
+    faces = inv[faces][rng.permutation(len(faces))]
+    edges = inv[edges][rng.permutation(len(edges))]
+    flip = rng.random(len(edges)) < 0.5
+    edges[flip] = edges[flip, ::-1]
+
+    self_collision = [True, False, True, False, False, True, False]  # 2 static: its flag is ignored
+    static = [False, False, True, True, False, False, False]
+    moving = ~np.isin(groups, [2, 3])
+
+    def motion(step):
+        a = x0 + 0.02 * step * moving[:, None] * [0.0, 0.0, -1.0]
+        b = a + moving[:, None] * rng.normal(0, 0.08, a.shape)
+        b[groups == 0, 2] -= 0.25
+        return a, b
+
+    kw = dict(groups=groups, self_collision=self_collision, static=static)
+    a, b = motion(0)
+    vf, ee, _, _ = check_against_reference(a, b, faces, edges, inflation=0.02, **kw)
+    vbody, fbody, ebody = groups[vf[:, 0]], groups[faces[vf[:, 1], 0]], groups[edges[ee, 0]]
+    pairs_vf = set(zip(vbody.tolist(), fbody.tolist()))
+    pairs_ee = {tuple(sorted(p)) for p in ebody.tolist()}
+    assert {(0, 0), (0, 2), (0, 3), (1, 0), (2, 0), (4, 0)} <= pairs_vf  # the scene exercises many groups
+    assert {(0, 0), (0, 2), (0, 3)} <= pairs_ee
+    assert not pairs_vf & {(1, 1), (2, 2), (2, 3), (3, 2), (3, 3), (6, 6)}
+    assert not pairs_ee & {(1, 1), (2, 2), (2, 3), (3, 3), (6, 6)}
+
+    bp = BroadPhase(faces, edges, num_vertices=len(x0), rebuild_every=3, **kw)
+    assert np.array_equal(bp.faces, faces) and np.array_equal(bp.edges, edges)  # caller's numbering
+    inflations = [0.02, 0.0, 0.05, 0.02, 0.6, 0.01, 0.0]  # 0.6: the pair buffers grow mid-run
+    for step, inflation in enumerate(inflations):  # build, refits, rebuilds; a refit after the last
+        a, b = motion(step)
+        got = bp.query(a, b, inflation, rebuild=None if step < len(inflations) - 1 else False)
+        want = candidate_pairs(a, b, faces, edges, inflation=inflation, **kw)
+        for g, w in zip(got, want):
+            assert np.array_equal(g, w)
+        if inflation == 0.6:
+            assert len(got[0]) > 8 * len(x0) and len(got[1]) > 8 * len(edges)
+    check_against_reference(a, b, faces, edges, inflation=inflations[-1], **kw)
+
+
 def test_adjacency_excluded_even_with_huge_inflation():
     """With every box overlapping every other, exactly the non-adjacent pairs remain."""
     x0, faces = grid(6, 1.0)
