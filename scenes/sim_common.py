@@ -41,13 +41,25 @@ DEFAULT_DEVICE = "cpu"
 BuildFn = Callable[[Any, argparse.Namespace], None]
 
 
+def warp_device(text: str) -> str:
+    """argparse type: a Warp device this machine has (``cpu``, ``cuda``, ``cuda:0``, ...)."""
+    import warp as wp
+
+    wp.init()
+    try:
+        return str(wp.get_device(text))
+    except Exception as exc:
+        available = ", ".join(str(d) for d in wp.get_devices())
+        raise argparse.ArgumentTypeError(f"{text!r} is not usable here ({exc}); available: {available}") from None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of every simulation scene: ``--dt``, ``--substeps``, ``--device``."""
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT,
                         help=f"frame time step [s] (default 1/60 = {DEFAULT_DT:.6g})")
     parser.add_argument("--substeps", type=positive_int, default=DEFAULT_SUBSTEPS,
                         help=f"substeps per frame (>= 1; default {DEFAULT_SUBSTEPS})")
-    parser.add_argument("--device", default=DEFAULT_DEVICE,
+    parser.add_argument("--device", type=warp_device, default=DEFAULT_DEVICE,
                         help=f"Warp device, e.g. cpu or cuda:0 (default {DEFAULT_DEVICE})")
     parser.add_argument("--scale", type=positive_float, default=1.0,
                         help="multiply every length of the scene (and gravity, velocities) by this "

@@ -130,6 +130,11 @@ def test_cli_options():
     assert cloth_drop.SUPPORTS_STEPS and cloth_drop.PRECISIONS == ("float64",)
     with pytest.raises(SystemExit):
         parser.parse_args(["--substeps", "0"])
+    with pytest.raises(SystemExit):  # not a Warp device (and no GPU is needed to say so)
+        parser.parse_args(["--device", "tpu:7"])
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--scale", "0"])
+    assert parser.parse_args(["--scale", "1e-3"]).scale == 1e-3
 
 
 def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
