@@ -43,9 +43,12 @@ BuildFn = Callable[[Any, argparse.Namespace], None]
 
 def warp_device(text: str) -> str:
     """argparse type: a Warp device this machine has (``cpu``, ``cuda``, ``cuda:0``, ...)."""
+    import contextlib
+
     import warp as wp
 
-    wp.init()
+    with contextlib.redirect_stdout(sys.stderr):  # Warp's start-up banner: stdout is for the summary
+        wp.init()
     try:
         return str(wp.get_device(text))
     except Exception as exc:
