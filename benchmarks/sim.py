@@ -243,7 +243,7 @@ def scene_table(steps: int) -> None:
     shows what the collision handling costs."""
     from scenes import cloth_drop, cloth_rigid, rigid_toss
     from scenes.sim_common import build_model, default_args
-    from sim.collision_response import ImpulseCollisionHandler
+    from collision.response import ImpulseCollisionHandler
 
     print(f"Full steps per second with collisions, per scene ({steps} steps of 1/60 s in 8 substeps, "
           "from the start; one CPU thread):")

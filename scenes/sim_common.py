@@ -5,7 +5,7 @@ colliders to a :class:`sim.builder.ModelBuilder` (the builder records the compon
 needs: ``cloth``, ``rigid``, ``static``), and delegates ``add_arguments`` / ``run`` to this module.
 
 Per step (``dt`` split into ``substeps``): :class:`sim.integrator.SemiImplicitIntegrator` with an
-:class:`sim.collision_response.ImpulseCollisionHandler` as its collision hook, then one frame
+:class:`collision.response.ImpulseCollisionHandler` as its collision hook, then one frame
 logged with :meth:`sim.recorder.SimRecorder.on_logger` (particle positions, body poses, the
 step's contacts gathered over all its substeps, metrics ``energy/{kinetic,potential,total}``,
 ``contacts`` and ``penetrations``). Penetrations come from the independent
@@ -181,7 +181,7 @@ def simulate(
     """
     from tqdm import tqdm
 
-    from sim.collision_response import ImpulseCollisionHandler
+    from collision.response import ImpulseCollisionHandler
     from sim.integrator import SemiImplicitIntegrator
     from sim.penetration import PenetrationChecker
 

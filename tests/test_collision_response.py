@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from sim.builder import ModelBuilder
-from sim.collision_response import ImpulseCollisionHandler
+from collision.response import ImpulseCollisionHandler
 from sim.integrator import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker

@@ -20,7 +20,7 @@ import warp as wp
 
 from scenes import cloth_drop, cloth_rigid, rigid_toss, sim_common
 from sim.builder import ModelBuilder
-from sim.collision_response import ImpulseCollisionHandler
+from collision.response import ImpulseCollisionHandler
 from sim.integrator import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
