@@ -145,8 +145,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"interrupted; {_what_was_written(out)}", file=sys.stderr)
         return 130
-    except Exception:
-        traceback.print_exc()
+    except Exception as exc:
+        from scenes.sim_common import SimulationDiverged
+
+        if isinstance(exc, SimulationDiverged):  # a setting to change, not a bug: no traceback
+            print(f"error: {exc}", file=sys.stderr)
+        else:
+            traceback.print_exc()
         print(f"{PROG} {name}: failed; {_what_was_written(out)}", file=sys.stderr)
         return 1
     print(text, flush=True)

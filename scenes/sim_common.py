@@ -90,6 +90,17 @@ def build_model(build: BuildFn, args: argparse.Namespace):
     return model if scale == 1.0 else model.scaled(scale)
 
 
+DIVERGENCE_FACTOR = 100.0
+"""A run stops with :class:`SimulationDiverged` once the kinetic energy exceeds this many times
+the scene's energy scale (:meth:`EnergyMeter.reference_scale`): energy is only ever dissipated
+or exchanged with gravity, so that much kinetic energy means the explicit springs blew up
+(substeps too long for their stiffness), not physics."""
+
+
+class SimulationDiverged(RuntimeError):
+    """The explicit integration blew up (see :data:`DIVERGENCE_FACTOR`)."""
+
+
 class EnergyMeter:
     """Kinetic and potential energy of a model's states (numpy, float64)."""
 
@@ -105,6 +116,20 @@ class EnergyMeter:
             self.si, self.rest, self.k = np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
         self.bm = model.body_mass.numpy() if B else np.zeros(0)
         self.bI = model.body_inertia.numpy().reshape(-1, 3, 3) if B else np.zeros((0, 3, 3))
+
+    def reference_scale(self, state, kinetic: float, potential: float) -> float:
+        """Energy scale [J] of a scene: ``|kinetic| + |potential|`` of ``state`` plus the work
+        gravity does on all the mass over the diagonal of the state's bounding box (the falls a
+        scene of that size allows)."""
+        x = state.particle_q.numpy().reshape(-1, 3)
+        parts = [x] if len(x) else []
+        if len(self.bm):
+            parts.append(state.body_q.numpy().reshape(-1, 7)[:, :3])
+        pts = np.concatenate(parts) if parts else np.zeros((1, 3))
+        extent = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+        mass = float(np.sum(self.pm) + np.sum(self.bm))
+        scale = abs(kinetic) + abs(potential) + mass * float(np.linalg.norm(self.g)) * extent
+        return scale if scale > 0 else 1.0
 
     def __call__(self, state) -> tuple[float, float]:
         """``(kinetic, potential)`` [J] of ``state``."""
@@ -205,6 +230,7 @@ def simulate(
     state, nxt = model.state(), model.state()
     k0, p0 = energy(state)
     e0 = k0 + p0
+    divergence_limit = DIVERGENCE_FACTOR * energy.reference_scale(state, k0, p0)
     rep0 = checker.check(state)
     if rep0.count:
         raise RuntimeError(f"{name}: the initial state already has {rep0.count} penetrations")
@@ -234,6 +260,13 @@ def simulate(
             kin, pot = energy(state)
             e = kin + pot
             finite &= math.isfinite(e)
+            if not math.isfinite(kin) or kin > divergence_limit:
+                raise SimulationDiverged(
+                    f"{name}: the simulation diverged at step {k + 1}: kinetic energy {kin:.3g} J exceeds "
+                    f"{DIVERGENCE_FACTOR:g}x the scene's energy scale ({divergence_limit / DIVERGENCE_FACTOR:.3g} J). "
+                    f"Explicit springs need substeps shorter than about 2 / sqrt(k / m): raise --substeps "
+                    f"(now {substeps}) or lower --dt (now {dt:g} s)"
+                )
             e_max = max(e_max, e) if math.isfinite(e) else e_max
             rep = checker.check(state)
             max_pen = max(max_pen, rep.count)

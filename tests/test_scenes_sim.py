@@ -178,3 +178,12 @@ def test_interrupted_run_keeps_a_readable_partial_recording(tmp_path, monkeypatc
     assert rows.get("/metrics/energy/total", 0) == 3
     assert rows.get("/status", 0) >= 1
     assert [p.name for p in tmp_path.iterdir()] == ["partial.rrd"]
+
+
+def test_too_few_substeps_stop_with_a_clear_error():
+    """Explicit springs blow up when the substep is too long for their stiffness: the run stops
+    within seconds with an error that names the setting to change, instead of grinding through
+    an exploding cloth."""
+    with pytest.raises(sim_common.SimulationDiverged, match="--substeps"):
+        sim_common.simulate(cloth_drop.build, sim_common.default_args(steps=60, substeps=3), None,
+                            name="cloth_drop", progress=False)
