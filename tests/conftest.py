@@ -10,3 +10,14 @@ from pathlib import Path
 
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
 os.environ["WARP_CACHE_PATH"] = str(Path(__file__).resolve().parent.parent / ".warp_cache" / _worker)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """The 2000-step scene runs (``xdist_group`` ``long_*``) go first, so that with ``-n 2 --dist
+    loadgroup`` each worker starts on its long group at once and the short tests fill in around
+    them, instead of the long groups queueing at the end."""
+    def is_long(item):
+        return any(m.name == "xdist_group" and str(m.args[0] if m.args else m.kwargs.get("name", "")).startswith("long_")
+                   for m in item.iter_markers())
+
+    items[:] = [i for i in items if is_long(i)] + [i for i in items if not is_long(i)]
