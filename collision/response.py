@@ -287,10 +287,10 @@ class ImpulseCollisionHandler:
             vel[b] = bv[body, 3:6] + np.cross(bv[body, :3], r0[idx[b] - self.shape_offset])
         return vel
 
-    def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w, frozen_p, frozen_b):
+    def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
         updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
-        impulses of ``cs``. Frozen particles / bodies count as immovable."""
+        impulses of ``cs``."""
         if len(cs) == 0:
             return
         dev = "cpu"
@@ -301,9 +301,9 @@ class ImpulseCollisionHandler:
                 a = np.zeros(fill_shape)
             return wp.array(a, dtype=dtype, device=dev)
 
-        inv_mp = np.where(frozen_p, 0.0, self.particle_inv_mass)
-        inv_mb = np.where(frozen_b, 0.0, self.body_inv_mass) if len(bv) else np.zeros(0)
-        inv_ib = np.where(frozen_b[:, None, None], 0.0, inv_inertia_w) if len(bv) else np.zeros((0, 3, 3))
+        inv_mp = self.particle_inv_mass
+        inv_mb = self.body_inv_mass if len(bv) else np.zeros(0)
+        inv_ib = inv_inertia_w if len(bv) else np.zeros((0, 3, 3))
         vp_w = arr(vp, wp.vec3d, (1, 3))
         lin_w = arr(bv[:, 3:6], wp.vec3d, (1, 3))
         ang_w = arr(bv[:, 0:3], wp.vec3d, (1, 3))
@@ -334,8 +334,6 @@ class ImpulseCollisionHandler:
             bv[:, 0:3] = ang_w.numpy()
         cs.jn, cs.jt = jn.numpy(), jt.numpy()
         self.last_sweeps = int(sweeps.numpy()[0])
-        vp[frozen_p] = 0.0
-        bv[frozen_b] = 0.0
 
     def _body_inertia_w(self, body_q):
         """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
@@ -383,8 +381,6 @@ class ImpulseCollisionHandler:
             rot = quat_to_matrix(bq0[:, 3:7])
             r0 = np.einsum("nij,nj->ni", rot[self.shape_body], self.shape_vertices)
             inv_inertia_w = rot @ self.body_inv_inertia @ np.swapaxes(rot, 1, 2)
-        no_p = np.zeros(P, dtype=bool)
-        no_b = np.zeros(B, dtype=bool)
         zones = _ImpactZones(P, B, self.particle_inv_mass)
         delta = self.separation
         self._sep_speed = delta / h
@@ -467,7 +463,7 @@ class ImpulseCollisionHandler:
                 vn = np.einsum("cd,cd->c", vrel, n)
                 target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
                 cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
-                self._solve(cs, vp, bv, r0, inv_inertia_w, no_p, no_b)
+                self._solve(cs, vp, bv, r0, inv_inertia_w)
 
         # 2-5. CCD rounds on the planned motion
         failsafe = False
@@ -518,7 +514,7 @@ class ImpulseCollisionHandler:
             sel = approaching
             target = np.maximum(-e * vn[sel], SEPARATION_RATE * delta / h)
             cs.add(kind[sel], pair[sel], idx[sel], w[sel], n[sel], toi[sel] * h, target)
-            self._solve(cs, vp, bv, r0, inv_inertia_w, no_p, no_b)
+            self._solve(cs, vp, bv, r0, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
         x1p, bq1, _, _ = plan()
