@@ -50,6 +50,8 @@ import warp as wp
 
 from collision.broad_phase import BroadPhase, mesh_edges
 from collision.ccd import _run as _narrow_phase
+from collision.replay import ContactReplay
+from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
 from sim.model import Model, State
 from sim.rotation import quat_to_matrix, quat_turn
@@ -79,6 +81,10 @@ APPROACH_EPS = 1e-12
 times the contact's largest vertex speed plus the separation speed (float64 rounding of a
 velocity that is exactly separating or tangential stays far inside)."""
 
+ACTIVE_SET_ITERATIONS = 20
+"""Most repairs of the active set (drop pulling contacts, add violated ones, switch between
+sticking and sliding) after the exact solve of the replayed response."""
+
 _PARTICLE, _BODY, _STATIC = 0, 1, 2
 
 
@@ -88,6 +94,7 @@ class _Contacts:
     def __init__(self) -> None:
         self.keys: dict[tuple[int, int, int], int] = {}
         self.idx = np.zeros((0, 4), dtype=np.int64)  # vertex indices (CCD order)
+        self.kind = np.zeros(0, dtype=np.int64)  # 0 vertex-face, 1 edge-edge, 2 vertex-plane
         self.w = np.zeros((0, 4))  # weights: side A positive (sum 1), side B negative (sum -1)
         self.n = np.zeros((0, 3))  # unit normal from side B to side A
         self.toi = np.zeros(0)  # time of impact in the substep [s]
@@ -99,9 +106,19 @@ class _Contacts:
     def __len__(self) -> int:
         return len(self.toi)
 
-    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target) -> None:
+    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target):
         """Adds contacts (a pair already present takes the new normal, weights and target, and
-        the earlier of the two times)."""
+        the earlier of the two times).
+
+        Returns:
+            (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
+            arguments each contact now takes its geometry from (-1: unchanged), and whether it
+            kept its old time / target (the decisions the taped replay repeats).
+        """
+        before = len(self.toi)
+        new_index = np.full(before, -1, dtype=np.int64)
+        keep_toi = np.zeros(before, dtype=np.int64)
+        keep_target = np.zeros(before, dtype=np.int64)
         new_rows = []
         for c in range(len(pair)):
             key = (int(kind[c]), int(pair[c, 0]), int(pair[c, 1]))
@@ -111,11 +128,15 @@ class _Contacts:
                 new_rows.append(c)
             else:
                 self.w[row], self.n[row] = w[c], n[c]
+                new_index[row] = c
+                keep_toi[row] = int(self.toi[row] <= toi[c])
+                keep_target[row] = int(self.target[row] >= target[c])
                 self.toi[row] = min(self.toi[row], toi[c])
                 self.target[row] = max(self.target[row], target[c])
         if new_rows:
             r = np.asarray(new_rows)
             self.idx = np.concatenate([self.idx, idx[r]])
+            self.kind = np.concatenate([self.kind, kind[r]])
             self.w = np.concatenate([self.w, w[r]])
             self.n = np.concatenate([self.n, n[r]])
             self.toi = np.concatenate([self.toi, toi[r]])
@@ -123,6 +144,10 @@ class _Contacts:
             self.edge_edge = np.concatenate([self.edge_edge, kind[r] == 1])
             self.jn = np.concatenate([self.jn, np.zeros(len(r))])
             self.jt = np.concatenate([self.jt, np.zeros((len(r), 3))])
+            new_index = np.concatenate([new_index, r])
+            keep_toi = np.concatenate([keep_toi, np.zeros(len(r), dtype=np.int64)])
+            keep_target = np.concatenate([keep_target, np.zeros(len(r), dtype=np.int64)])
+        return new_index, keep_toi, keep_target
 
 
 class ImpulseCollisionHandler:
@@ -141,9 +166,12 @@ class ImpulseCollisionHandler:
         separation: the separation ``delta`` [m] the proximity pass keeps.
     """
 
-    def __init__(self, model: Model, max_iterations: int = 8):
+    def __init__(self, model: Model, max_iterations: int = 8, differentiable: bool = False,
+                 max_derivative: float = DEFAULT_MAX_DERIVATIVE):
         self.model = model
         self.max_iterations = int(max_iterations)
+        self.differentiable = bool(differentiable)
+        self.max_derivative = float(max_derivative)
         m = model
         comps = model.components
         faces, groups, self_collision, static = [], [], [], []
@@ -186,10 +214,13 @@ class ImpulseCollisionHandler:
         self.n_vertices = offset
         self.faces = np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), dtype=np.int64)
         self.edges = mesh_edges(self.faces) if len(self.faces) else np.zeros((0, 2), dtype=np.int64)
-        self.vertex_type = np.concatenate(vtype).astype(np.int64) if vtype else np.zeros(0, dtype=np.int64)
-        self.vertex_owner = np.concatenate(vowner).astype(np.int64) if vowner else np.zeros(0, dtype=np.int64)
-        self._vertex_type_w = wp.array(np.append(self.vertex_type, 0).astype(np.int32), dtype=wp.int32, device="cpu")
-        self._vertex_owner_w = wp.array(np.append(self.vertex_owner, 0).astype(np.int32), dtype=wp.int32, device="cpu")
+        # one dummy static vertex (index n_vertices, at the origin): the second side of
+        # vertex-plane contacts
+        self.vertex_type = np.append(np.concatenate(vtype) if vtype else np.zeros(0), _STATIC).astype(np.int64)
+        self.vertex_owner = np.append(np.concatenate(vowner) if vowner else np.zeros(0), 0).astype(np.int64)
+        self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device="cpu")
+        self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device="cpu")
+        self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
         self.last_sweeps = 0
         self.broad_phase = None
         if self.n_vertices and len(self.faces):
@@ -211,12 +242,29 @@ class ImpulseCollisionHandler:
         if self.separation <= 0.0 and self.n_vertices:
             x = self._vertices(m.particle_q.numpy()[: self.n_particles] if self.n_particles else np.zeros((0, 3)),
                                m.body_q.numpy() if self.n_shape else np.zeros((0, 7)))
+            x = x[: self.n_vertices]
             diag = float(np.linalg.norm(x.max(0) - x.min(0))) if len(x) else 0.0
             self.separation = DEFAULT_SEPARATION_RELATIVE * diag if diag > 0 else 1e-6
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
         self.failsafe_count = 0
+        self.untaped_substeps = 0
+        self.active_set_repairs = 0
+        self._replay = None
+        if self.differentiable:
+            local = np.zeros((self.n_vertices, 3))
+            if self.n_shape:
+                local[self.shape_offset:self.shape_offset + self.n_shape] = self.shape_vertices
+            if len(self.static_vertices):
+                local[self.static_offset:] = self.static_vertices
+            self._replay = ContactReplay(
+                self.vertex_type[:-1], self.vertex_owner[:-1], local,
+                m.particle_inv_mass if self.n_particles else None,
+                m.body_inv_mass if self.n_bodies else None,
+                m.body_inv_inertia if self.n_bodies else None,
+                self.planes, m.friction, m.restitution, m.device,
+            )
 
     # ------------------------------------------------------------------------------------------
     # geometry
@@ -232,7 +280,8 @@ class ImpulseCollisionHandler:
             parts.append(pos[self.shape_body] + np.einsum("nij,nj->ni", rot, self.shape_vertices))
         if len(self.static_vertices):
             parts.append(self.static_vertices)
-        return np.concatenate(parts) if parts else np.zeros((0, 3))
+        parts.append(np.zeros((1, 3)))  # the dummy vertex
+        return np.concatenate(parts)
 
     def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
@@ -269,6 +318,66 @@ class ImpulseCollisionHandler:
             s, u = _segment_params(a0, a1, b0, b1)
             w[edge_edge] = np.column_stack([1 - s, s, -(1 - u), -u])
         return w
+
+    def _plane_proximity(self, x0: np.ndarray, delta: float):
+        """Rigid vertices closer than ``delta`` to (or behind) a plane at the start: (kind 2,
+        pair (vertex, plane), vertex indices (vertex, dummy x3), signed distance)."""
+        if not (self.n_shape and len(self.planes)):
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
+        verts = np.arange(self.shape_offset, self.shape_offset + self.n_shape)
+        dist = x0[verts] @ self.planes[:, :3].T - self.planes[:, 3]
+        v, k = np.nonzero(dist < delta)
+        return self._plane_rows(verts[v], k) + (dist[v, k],)
+
+    def _plane_rows(self, vertex: np.ndarray, plane: np.ndarray):
+        kind = np.full(len(vertex), 2, dtype=np.int64)
+        pair = np.column_stack([vertex, plane]).astype(np.int64)
+        idx = np.full((len(vertex), 4), self.n_vertices, dtype=np.int64)
+        idx[:, 0] = vertex
+        return kind, pair, idx
+
+    def _ccd_candidates(self, x0: np.ndarray, x1: np.ndarray):
+        """Hits of the straight paths ``x0 -> x1`` (with the dummy vertex last): vertex-face,
+        edge-edge (broad + narrow phase at zero thickness) and rigid vertex-plane (the vertex
+        ends behind the plane, moving inwards).
+
+        Returns:
+            (kind (C,), pair (C, 2), vertex indices (C, 4), time of impact as a fraction of the
+            substep (C,), source (C,): the narrow phase's (0 start, 1-3 cubic slot, 4 collinear,
+            5 advancement) or 6 for planes).
+        """
+        n = self.n_vertices
+        kinds, pairs, idxs, tois, sources = [], [], [], [], []
+        vf, ee = self.broad_phase.query(x0[:n], x1[:n], 0.0)
+        if len(vf) + len(ee):
+            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
+            pair = np.concatenate([vf, ee])
+            idx = self._pair_vertices(kind, pair)
+            queries = np.ascontiguousarray(np.concatenate([x0[idx], x1[idx]], axis=1))
+            hit_vf, toi_vf, src_vf = _narrow_phase(0, queries[kind == 0], 0.0)
+            hit_ee, toi_ee, src_ee = _narrow_phase(1, queries[kind == 1], 0.0)
+            hit = np.concatenate([hit_vf, hit_ee])
+            kinds.append(kind[hit])
+            pairs.append(pair[hit])
+            idxs.append(idx[hit])
+            tois.append(np.concatenate([toi_vf, toi_ee])[hit])
+            sources.append(np.concatenate([src_vf, src_ee])[hit].astype(np.int64))
+        if self.n_shape and len(self.planes):
+            verts = np.arange(self.shape_offset, self.shape_offset + self.n_shape)
+            d0 = x0[verts] @ self.planes[:, :3].T - self.planes[:, 3]
+            d1 = x1[verts] @ self.planes[:, :3].T - self.planes[:, 3]
+            v, k = np.nonzero((d1 < 0.0) & (d1 < d0))
+            if len(v):
+                kind, pair, idx = self._plane_rows(verts[v], k)
+                kinds.append(kind)
+                pairs.append(pair)
+                idxs.append(idx)
+                tois.append(np.clip(d0[v, k] / (d0[v, k] - d1[v, k]), 0.0, 1.0))
+                sources.append(np.full(len(v), 6, dtype=np.int64))
+        if not kinds:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0), np.zeros(0, dtype=np.int64)
+        return (np.concatenate(kinds), np.concatenate(pairs), np.concatenate(idxs), np.concatenate(tois),
+                np.concatenate(sources))
 
     # ------------------------------------------------------------------------------------------
     # velocities and impulses
@@ -366,6 +475,8 @@ class ImpulseCollisionHandler:
         self.last_times = np.zeros(0)
         if self.broad_phase is None:
             return None
+        if self.differentiable:
+            return self._call_replayed(state_in, state_pred, h)
         P, B = self.n_particles, self.n_bodies
         x0p = state_in.particle_q.numpy()[:P] if P else np.zeros((0, 3))
         bq0 = state_in.body_q.numpy() if B else np.zeros((0, 7))
@@ -425,7 +536,7 @@ class ImpulseCollisionHandler:
             return np.where(use_before[..., None], before, after)
 
         # 1. proximity contacts at the start of the substep
-        vf, ee = self.broad_phase.query(x0, x0, delta)
+        vf, ee = self.broad_phase.query(x0[:-1], x0[:-1], delta)
         if len(vf) + len(ee):
             kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
             pair = np.concatenate([vf, ee])
@@ -464,31 +575,33 @@ class ImpulseCollisionHandler:
                 target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
                 cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
                 self._solve(cs, vp, bv, r0, inv_inertia_w)
+        kind, pair, idx, d = self._plane_proximity(x0, delta)
+        if len(kind):
+            w = np.tile([1.0, 0.0, 0.0, 0.0], (len(kind), 1))
+            n = self.planes[pair[:, 1], :3]
+            vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
+            vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
+            target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
+            cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
+            self._solve(cs, vp, bv, r0, inv_inertia_w)
 
         # 2-5. CCD rounds on the planned motion
         failsafe = False
         for iteration in itertools.count():
             x1p, bq1, t_p, t_b = plan()
             x1 = self._vertices(x1p, bq1)
-            vf, ee = self.broad_phase.query(x0, x1, 0.0)
-            if len(vf) + len(ee) == 0:
+            kind, pair, idx, toi, _ = self._ccd_candidates(x0, x1)
+            if len(kind) == 0:
                 break
-            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
-            pair = np.concatenate([vf, ee])
-            idx = self._pair_vertices(kind, pair)
-            queries = np.ascontiguousarray(np.concatenate([x0[idx], x1[idx]], axis=1))
-            hit_vf, toi_vf, _ = _narrow_phase(0, queries[kind == 0], 0.0)
-            hit_ee, toi_ee, _ = _narrow_phase(1, queries[kind == 1], 0.0)
-            hit = np.concatenate([hit_vf, hit_ee])
-            if not hit.any():
-                break
-            toi = np.concatenate([toi_vf, toi_ee])[hit]
-            kind, pair, idx = kind[hit], pair[hit], idx[hit]
             ee_mask = kind == 1
             frac = toi[:, None, None]
             y = x0[idx] + frac * (x1[idx] - x0[idx])
             w = self._weights(y, ee_mask)
             n = self._normals(idx, x0, y, w, ee_mask)
+            on_plane = kind == 2
+            if on_plane.any():
+                w[on_plane] = [1.0, 0.0, 0.0, 0.0]
+                n[on_plane] = self.planes[pair[on_plane, 1], :3]
             vel = velocities_at(idx, toi * h, t_p, t_b)
             vrel = np.einsum("ck,ckd->cd", w, vel)
             vn = np.einsum("cd,cd->c", vrel, n)
@@ -538,6 +651,220 @@ class ImpulseCollisionHandler:
             body_qd=wp.array(bv, dtype=wp.spatial_vectord, device=d) if B else state_pred.body_qd,
         )
         return out
+
+    def _call_replayed(self, state_in: State, state_pred: State, h: float) -> State | None:
+        """The response as decisions on the host and a taped replay on the device
+        (:class:`collision.replay.ContactReplay`): the result is the replay's, exact for the
+        decided contact set (impulses from the active set's equations, not Gauss-Seidel sweeps),
+        and differentiable when a ``wp.Tape`` is recording."""
+        R = self._replay
+        P, B = self.n_particles, self.n_bodies
+        m = self.model
+        nv = self.n_vertices
+        xq0 = state_in.particle_q if P else None
+        bq0_w = state_in.body_q if B else None
+        vm_p = state_pred.particle_qd if P else None
+        vm_b = state_pred.body_qd if B else None
+        X0, L0 = R.pose(xq0, bq0_w)
+        inv_I = R.world_inverse_inertia(bq0_w)
+        x0 = X0.numpy()
+        x0p = state_in.particle_q.numpy()[:P] if P else np.zeros((0, 3))
+        bq0 = state_in.body_q.numpy() if B else np.zeros((0, 7))
+        vp_minus = vm_p.numpy() if P else np.zeros((0, 3))
+        bv_minus = vm_b.numpy() if B else np.zeros((0, 6))
+        vp, bv = vp_minus.copy(), bv_minus.copy()
+        r0 = L0.numpy()[self.shape_offset:self.shape_offset + self.n_shape] if self.n_shape else np.zeros((0, 3))
+        inv_inertia_w = inv_I.numpy().reshape(-1, 3, 3) if B else np.zeros((0, 3, 3))
+        zones = _ImpactZones(P, B, self.particle_inv_mass)
+        delta = self.separation
+        self._sep_speed = delta / h
+        mu = float(m.friction)
+        cs = _Contacts()
+        st = {"dev": None, "vp": vm_p, "vb": vm_b, "zone": False}
+        tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        mobile_type = (self.vertex_type == _BODY) | (
+            (self.vertex_type == _PARTICLE) & (np.append(self.particle_inv_mass, 0.0)[np.minimum(self.vertex_owner, max(P, 1) - 1) if P else 0] > 0)
+            if P else np.zeros(len(self.vertex_type), dtype=bool))
+
+        def owners():
+            t_p, t_b = self._owner_times(cs, P, B)
+            po = np.full(P, -1, dtype=np.int64)
+            bo = np.full(B, -1, dtype=np.int64)
+            if len(cs):
+                rows = np.repeat(np.arange(len(cs)), 4)
+                toi = np.repeat(cs.toi, 4)
+                t = self.vertex_type[cs.idx].ravel()
+                o = self.vertex_owner[cs.idx].ravel()
+                p = (t == _PARTICLE) & (cs.w.ravel() != 0)
+                p &= toi == np.where(p, t_p[np.where(p, o, 0)] if P else np.inf, np.inf)
+                po[o[p]] = rows[p]
+                b = t == _BODY
+                b &= toi == np.where(b, t_b[np.where(b, o, 0)] if B else np.inf, np.inf)
+                bo[o[b]] = rows[b]
+            po[zones.particles] = -2
+            bo[zones.bodies] = -2
+            return po, bo, t_p, t_b
+
+        def plan():
+            po, bo, t_p, t_b = owners()
+            toi = st["dev"][0] if st["dev"] is not None else wp.zeros(1, dtype=wp.float64, device=m.device)
+            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], bq0_w,
+                                   state_pred.body_q if B else None, vm_b, st["vb"], po, bo, toi, h)
+            return X1p, BQ1, t_p, t_b
+
+        def velocities_at(idx, toi, t_p, t_b):
+            before = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
+            after = self._vertex_velocities(idx, vp, bv, r0)
+            t = self.vertex_type[idx]
+            o = self.vertex_owner[idx]
+            owner_t = np.full(idx.shape, np.inf)
+            p = t == _PARTICLE
+            owner_t[p] = t_p[o[p]]
+            b = t == _BODY
+            owner_t[b] = t_b[o[b]]
+            return np.where((toi[:, None] < owner_t)[..., None], before, after)
+
+        def geometry(kind, pair, idx, frac, source, X1, t_p, t_b):
+            rows = {"pairs": idx, "kinds": kind, "sources": source, "detected": frac,
+                    "plane_ids": np.where(kind == 2, pair[:, 1], 0)}
+            out = R.geometry(X0, X1, L0, rows, vm_p, st["vp"], vm_b, st["vb"], t_p, t_b, h, delta,
+                             SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative)
+            return out, [a.numpy()[: len(kind)] for a in out]
+
+        def add(sel, out, host, kind, pair, idx):
+            toi_h, w_h, n_h, tg_h = host
+            new_index, keep_toi, keep_tg = cs.add(kind[sel], pair[sel], idx[sel], w_h[sel], n_h[sel], toi_h[sel], tg_h[sel])
+            pos = np.flatnonzero(sel)
+            full = np.where(new_index >= 0, pos[np.maximum(new_index, 0)], -1)
+            st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2]), full, keep_toi, keep_tg)
+
+        def exact():
+            # decide: the active set from projected Gauss-Seidel, then replay the exact normal
+            # solve and repair the set (drop pulling contacts, add violated ones) until it holds
+            self._solve(cs, vp, bv, r0, inv_inertia_w)
+            mobile = ((cs.w != 0) & mobile_type[cs.idx]).any(axis=1)
+            active = (cs.jn > 0) & mobile
+            for _ in range(ACTIVE_SET_ITERATIONS):
+                share = self._friction_share(cs, active) if mu > 0 else None
+                vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
+                jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
+                vrel = np.einsum("ck,ckd->cd", cs.w, self._vertex_velocities(
+                    cs.idx, vp_d.numpy() if P else vp, vb_d.numpy() if B else bv, r0))
+                vn = np.einsum("cd,cd->c", vrel, cs.n)
+                scale = max(float(np.abs(jn).max()), 1e-300)
+                new = active.copy()
+                new[active & (jn < -1e-9 * scale)] = False
+                new[~active & mobile & (vn < cs.target - tol)] = True
+                if (new == active).all():
+                    break
+                active = new
+                self.active_set_repairs += 1
+            if P:
+                st["vp"] = vp_d
+                vp[:] = vp_d.numpy()
+            if B:
+                st["vb"] = vb_d
+                bv[:] = vb_d.numpy()
+            cs.jn = np.where(active, jn, 0.0)
+            cs.jt = np.zeros_like(cs.jt)
+
+        inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
+        # 1. proximity contacts at the start of the substep
+        kinds, pairs, idxs = [], [], []
+        vf, ee = self.broad_phase.query(x0[:nv], x0[:nv], delta)
+        if len(vf) + len(ee):
+            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
+            pair = np.concatenate([vf, ee])
+            idx = self._pair_vertices(kind, pair)
+            near = np.linalg.norm(self._offsets(x0, idx, kind), axis=1) < delta
+            kinds.append(kind[near])
+            pairs.append(pair[near])
+            idxs.append(idx[near])
+        kind, pair, idx, _ = self._plane_proximity(x0, delta)
+        kinds.append(kind)
+        pairs.append(pair)
+        idxs.append(idx)
+        kind, pair, idx = np.concatenate(kinds), np.concatenate(pairs), np.concatenate(idxs)
+        if len(kind):
+            zero = np.zeros(len(kind))
+            out, host = geometry(kind, pair, idx, zero, np.zeros(len(kind), dtype=np.int64), X0, inf_p, inf_b)
+            add(np.ones(len(kind), dtype=bool), out, host, kind, pair, idx)
+            exact()
+
+        # 2-5. CCD rounds on the planned motion
+        failsafe = False
+        X1 = None
+        for iteration in itertools.count():
+            X1p, BQ1, t_p, t_b = plan()
+            X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
+            x1 = X1.numpy()
+            kind, pair, idx, frac, source = self._ccd_candidates(x0, x1)
+            if len(kind) == 0:
+                break
+            # times off the cubic (start, collinear, advancement) enter as constants
+            source = np.where(np.isin(source, (1, 2, 3, 6)), source, 4)
+            out, host = geometry(kind, pair, idx, frac, source, X1, t_p, t_b)
+            toi, w, n, _ = host
+            vel = velocities_at(idx, toi, t_p, t_b)
+            vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
+            vn_path = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h), n)
+            eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
+            approaching = (vn < -eps) | (vn_path < -eps)
+            if not approaching.any():
+                break
+            if iteration >= self.max_iterations:
+                failsafe = True
+                if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
+                    break
+                zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
+                                       self._body_mass, self._body_inertia_w(bq0))
+                # the zones' rigid motion is computed on the host: no derivative flows through it
+                if P:
+                    st["vp"] = wp.array(vp, dtype=wp.vec3d, device=m.device)
+                if B:
+                    st["vb"] = wp.array(bv, dtype=wp.spatial_vectord, device=m.device)
+                st["zone"] = True
+                continue
+            add(approaching, out, host, kind, pair, idx)
+            exact()
+        if failsafe:
+            self.failsafe_count += 1
+        if st["zone"]:
+            self.untaped_substeps += 1
+        if len(cs) == 0 and not failsafe:
+            return None
+        X1p, BQ1, _, _ = plan()
+        active = cs.jn > 0
+        if active.any():
+            X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
+            x1 = X1.numpy()
+            ia = cs.idx[active]
+            side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None], cs.w[active], 0.0))
+            y = x0[ia] + (cs.toi[active] / h)[:, None, None] * (x1[ia] - x0[ia])
+            self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
+            self.last_normals = cs.n[active]
+            self.last_times = cs.toi[active]
+        return State(
+            particle_q=X1p if P else state_pred.particle_q,
+            particle_qd=st["vp"] if P else state_pred.particle_qd,
+            body_q=BQ1 if B else state_pred.body_q,
+            body_qd=st["vb"] if B else state_pred.body_qd,
+        )
+
+    def _friction_share(self, cs: _Contacts, active: np.ndarray) -> np.ndarray:
+        """Per contact: one over the largest number of active contacts that any particle or body
+        it moves takes part in (friction impulses of one pass are applied together)."""
+        P = self.n_particles
+        t = self.vertex_type[cs.idx]
+        o = self.vertex_owner[cs.idx]
+        node = np.where((t == _PARTICLE) & (cs.w != 0), o, np.where(t == _BODY, P + o, -1))
+        rows = np.repeat(np.arange(len(cs)), 4).reshape(-1, 4)
+        sel = active[:, None] & (node >= 0)
+        pairs = np.unique(np.column_stack([rows[sel], node[sel]]), axis=0) if sel.any() else np.zeros((0, 2), dtype=np.int64)
+        counts = np.bincount(pairs[:, 1], minlength=P + self.n_bodies + 1) if len(pairs) else np.zeros(P + self.n_bodies + 1)
+        per_slot = np.where(node >= 0, counts[np.maximum(node, 0)], 0)
+        most = np.maximum(per_slot.max(axis=1), 1)
+        return 1.0 / most
 
     @staticmethod
     def _normals(idx, x0, y, w, edge_edge):

@@ -113,21 +113,6 @@ def closest_segment_parameter(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d) -> wp.float
 
 
 @wp.func
-def point_segment_offset(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d) -> wp.vec3d:
-    """p minus its closest point on the closed segment ab."""
-    s = closest_segment_parameter(p, a, b)
-    return p - (a + s * (b - a))
-
-
-@wp.func
-def nearer(u: wp.vec3d, v: wp.vec3d) -> wp.vec3d:
-    """The shorter of two offset vectors."""
-    if wp.dot(v, v) < wp.dot(u, u):
-        return v
-    return u
-
-
-@wp.func
 def within(offset: wp.vec3d, tolerance: wp.vec3d) -> bool:
     """|offset| <= tolerance on every axis (a box test, as conservative as its per-axis bounds)."""
     return wp.abs(offset[0]) <= tolerance[0] and wp.abs(offset[1]) <= tolerance[1] and wp.abs(offset[2]) <= tolerance[2]

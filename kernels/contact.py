@@ -9,8 +9,10 @@ the distance.
 
 import warp as wp
 
-from kernels.edge_edge import segment_segment_offset
-from kernels.point_triangle import point_triangle_offset
+from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic
+from kernels.edge_edge import segment_segment_closest, segment_segment_offset
+from kernels.point_triangle import point_triangle_closest, point_triangle_offset
+from kernels.roots import cubic_roots
 
 
 @wp.kernel
@@ -147,3 +149,739 @@ def solve_contacts_kernel(
         if worst <= tolerance:
             break
     sweeps_done[0] = sweep
+
+
+# ----------------------------------------------------------------------------------------------
+# Replay of the collision response (taped): the smooth map from the start state and the predicted
+# velocities to the velocities and positions after the impulses, given the discrete decisions of
+# the detection stage (contact set, root slot, active set, friction regime, earliest contact per
+# owner). See design.md "Differentiating collision response: decide, then replay".
+
+VERTEX_PARTICLE = wp.constant(0)
+VERTEX_BODY = wp.constant(1)
+VERTEX_STATIC = wp.constant(2)
+
+PAIR_VERTEX_FACE = wp.constant(0)
+PAIR_EDGE_EDGE = wp.constant(1)
+PAIR_VERTEX_PLANE = wp.constant(2)
+
+TIME_START = wp.constant(0)  # proximity contact: t* = 0
+TIME_DETECTED = wp.constant(4)  # a time the narrow phase found off the cubic (no derivative)
+TIME_PLANE = wp.constant(6)  # vertex-plane crossing of the linear path
+
+
+@wp.kernel
+def pose_vertices_kernel(
+    particle_q: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+    lever: wp.array(dtype=wp.vec3d),
+):
+    """World position ``x`` of collidable vertex ``tid`` and its lever arm from its body's centre
+    of mass (zero for particles and static vertices). ``local`` holds body-frame positions of
+    rigid vertices and world positions of static ones."""
+    v = wp.tid()
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if kind == VERTEX_PARTICLE:
+        x[v] = particle_q[o]
+        lever[v] = zero
+    elif kind == VERTEX_BODY:
+        X = body_q[o]
+        r = wp.quat_rotate(wp.transform_get_rotation(X), local[v])
+        x[v] = wp.transform_get_translation(X) + r
+        lever[v] = r
+    else:
+        x[v] = local[v]
+        lever[v] = zero
+
+
+@wp.func
+def vertex_velocity(
+    v: int,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+) -> wp.vec3d:
+    """Velocity of collidable vertex ``v`` (rigid: ``v + w x r`` with the start lever arm)."""
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        return particle_qd[o]
+    if kind == VERTEX_BODY:
+        t = body_qd[o]
+        return wp.spatial_bottom(t) + wp.cross(wp.spatial_top(t), lever[v])
+    return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.func
+def vertex_time(
+    v: int,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+) -> wp.float64:
+    """Time of impact [s] already assigned to the owner of vertex ``v`` (inf for none/static)."""
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        return particle_time[o]
+    if kind == VERTEX_BODY:
+        return body_time[o]
+    return wp.float64(1.0e308) * wp.float64(10.0)
+
+
+@wp.func
+def pair_weights(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.vec4d:
+    """Signed weights of the closest points: side A positive (sum 1), side B negative (sum -1)."""
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    if kind == PAIR_VERTEX_FACE:
+        vw = point_triangle_closest(y0, y1, y2, y3)
+        return wp.vec4d(one, -(one - vw[0] - vw[1]), -vw[0], -vw[1])
+    if kind == PAIR_EDGE_EDGE:
+        st = segment_segment_closest(y0, y1, y2, y3)
+        return wp.vec4d(one - st[0], st[0], -(one - st[1]), -st[1])
+    return wp.vec4d(one, zero, zero, zero)
+
+
+@wp.func
+def pair_geometric_normal(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.vec3d:
+    """Face normal (vertex-face) or the edges' cross product (edge-edge), not normalised."""
+    if kind == PAIR_VERTEX_FACE:
+        return wp.cross(y2 - y1, y3 - y1)
+    return wp.cross(y1 - y0, y3 - y2)
+
+
+@wp.func
+def pair_scale(y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.float64:
+    """Largest coordinate deviation of the four points from their mean (size of the pair)."""
+    m = (y0 + y1 + y2 + y3) * wp.float64(0.25)
+    s = wp.float64(0.0)
+    for k in range(3):
+        s = wp.max(s, wp.max(wp.max(wp.abs(y0[k] - m[k]), wp.abs(y1[k] - m[k])), wp.max(wp.abs(y2[k] - m[k]), wp.abs(y3[k] - m[k]))))
+    return s
+
+
+@wp.kernel
+def contact_geometry_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    lever: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    kinds: wp.array(dtype=wp.int32),
+    sources: wp.array(dtype=wp.int32),
+    detected: wp.array(dtype=wp.float64),
+    plane_ids: wp.array(dtype=wp.int32),
+    planes: wp.array(dtype=wp.vec4d),
+    particle_qd_minus: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd_minus: wp.array(dtype=wp.spatial_vectord),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    separation: wp.float64,
+    restitution: wp.float64,
+    separation_rate: wp.float64,
+    touching_relative: wp.float64,
+    max_derivative: wp.float64,
+    toi: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    targets: wp.array(dtype=wp.float64),
+):
+    """Time of impact, weights, normal and target normal velocity of contact ``tid`` on the
+    linear paths ``x0 -> x1`` of the substep ``h`` (differentiable; the branches are the
+    decisions of the detection stage, repeated here).
+
+    * ``t*``: 0 for proximity contacts (source 0); the real part of the cubic's root in slot
+      ``source - 1`` for CCD hits at a root (through :func:`kernels.roots.cubic_roots`, whose
+      adjoint is the mollified implicit derivative bounded by ``max_derivative``); the linear
+      crossing time for vertex-plane hits (source 6); otherwise the detected fraction.
+    * weights and normal at ``t*`` (:func:`pair_weights`; the face / edge-edge normal oriented
+      by the start offset, or, for proximity pairs, the offset direction; touching pairs take
+      the geometric normal turned against the relative motion).
+    * target: proximity ``max(-e min(v_n, 0), rate (delta - d) / h)``; CCD
+      ``max(-e v_n, rate delta / h)`` with vertex velocities ``v-`` before their owner's
+      earlier contact time and the current ones after.
+    """
+    c = wp.tid()
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    q = pairs[c]
+    kind = kinds[c]
+    src = sources[c]
+    a0 = x0[q[0]]
+    a1 = x0[q[1]]
+    a2 = x0[q[2]]
+    a3 = x0[q[3]]
+    b0 = x1[q[0]]
+    b1 = x1[q[1]]
+    b2 = x1[q[2]]
+    b3 = x1[q[3]]
+    frac = zero
+    if src >= 1 and src <= 3:
+        r = cubic_roots(coplanarity_cubic(a0, a1, a2, a3, b0, b1, b2, b3), CCD_T_MAX, max_derivative)
+        frac = wp.clamp(r[2 * (src - 1)], zero, one)
+    elif src == TIME_PLANE:
+        p = planes[plane_ids[c]]
+        pn = wp.vec3d(p[0], p[1], p[2])
+        frac = wp.clamp((p[3] - wp.dot(pn, a0)) / wp.dot(pn, b0 - a0), zero, one)
+    elif src != TIME_START:
+        frac = detected[c]
+    y0 = a0 + frac * (b0 - a0)
+    y1 = a1 + frac * (b1 - a1)
+    y2 = a2 + frac * (b2 - a2)
+    y3 = a3 + frac * (b3 - a3)
+    w = pair_weights(kind, y0, y1, y2, y3)
+    offset = w[0] * y0 + w[1] * y1 + w[2] * y2 + w[3] * y3
+    start_offset = w[0] * a0 + w[1] * a1 + w[2] * a2 + w[3] * a3
+    distance = wp.length(offset)
+    n = wp.vec3d(zero, zero, one)
+    if kind == PAIR_VERTEX_PLANE:
+        p = planes[plane_ids[c]]
+        n = wp.vec3d(p[0], p[1], p[2])
+        distance = wp.dot(n, a0) - p[3]
+
+    # velocities: v- for the proximity pass; at t* for CCD hits (v- before the owner's t*)
+    vrel = wp.vec3d(zero, zero, zero)
+    for k in range(4):
+        vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_minus, body_qd_minus)
+        if src != TIME_START:
+            if frac * h >= vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time):
+                vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd, body_qd)
+        vrel = vrel + w[k] * vk
+
+    if kind != PAIR_VERTEX_PLANE:
+        scale = pair_scale(y0, y1, y2, y3)
+        geo = pair_geometric_normal(kind, y0, y1, y2, y3)
+        geo_ok = wp.length(geo) > wp.float64(1.0e-12) * scale * scale
+        if src == TIME_START:
+            if distance > touching_relative * separation:
+                n = offset / distance
+            else:
+                # touching: the offset has no reliable direction
+                speed = wp.length(vrel)
+                if geo_ok:
+                    n = wp.normalize(geo)
+                elif speed > zero:
+                    n = -vrel / speed
+                if wp.dot(n, vrel) > zero:
+                    n = -n
+        else:
+            if geo_ok:
+                n = wp.normalize(geo)
+            elif wp.length(start_offset) > zero:
+                n = wp.normalize(start_offset)
+            if wp.dot(n, start_offset) < zero:
+                n = -n
+    vn = wp.dot(vrel, n)
+    target = zero
+    if src == TIME_START:
+        target = wp.max(-restitution * wp.min(vn, zero), separation_rate * (separation - distance) / h)
+    else:
+        target = wp.max(-restitution * vn, separation_rate * separation / h)
+    toi[c] = frac * h
+    weights[c] = w
+    normals[c] = n
+    targets[c] = target
+
+
+@wp.kernel
+def merge_contacts_kernel(
+    old_toi: wp.array(dtype=wp.float64),
+    old_targets: wp.array(dtype=wp.float64),
+    old_weights: wp.array(dtype=wp.vec4d),
+    old_normals: wp.array(dtype=wp.vec3d),
+    new_toi: wp.array(dtype=wp.float64),
+    new_targets: wp.array(dtype=wp.float64),
+    new_weights: wp.array(dtype=wp.vec4d),
+    new_normals: wp.array(dtype=wp.vec3d),
+    new_index: wp.array(dtype=wp.int32),
+    keep_old_toi: wp.array(dtype=wp.int32),
+    keep_old_target: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    targets: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+):
+    """Contact ``tid`` of the grown set: the old row (``new_index < 0``) or this round's
+    detection (its weights and normal; the earlier time and the larger target, as decided)."""
+    c = wp.tid()
+    k = new_index[c]
+    if k < 0:
+        toi[c] = old_toi[c]
+        targets[c] = old_targets[c]
+        weights[c] = old_weights[c]
+        normals[c] = old_normals[c]
+        return
+    weights[c] = new_weights[k]
+    normals[c] = new_normals[k]
+    if keep_old_toi[c] != 0:
+        toi[c] = old_toi[c]
+    else:
+        toi[c] = new_toi[k]
+    if keep_old_target[c] != 0:
+        targets[c] = old_targets[c]
+    else:
+        targets[c] = new_targets[k]
+
+
+@wp.kernel
+def body_world_inverse_inertia_kernel(
+    body_q: wp.array(dtype=wp.transformd),
+    inv_inertia: wp.array(dtype=wp.mat33d),
+    out: wp.array(dtype=wp.mat33d),
+):
+    """``R I^-1 R^T`` of body ``tid`` at pose ``body_q``."""
+    b = wp.tid()
+    R = wp.quat_to_matrix(wp.transform_get_rotation(body_q[b]))
+    out[b] = R * inv_inertia[b] * wp.transpose(R)
+
+
+@wp.kernel
+def contact_sides_kernel(
+    pairs: wp.array(dtype=wp.vec4i),
+    kinds: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+):
+    """Per contact and side: the rigid body (or -1), its weight sum ``W`` and weighted lever arm
+    ``rho = sum w_k r_k``: a unit impulse ``j`` at the contact moves the body by ``W j / m`` and
+    ``I^-1 (rho x j)``. (Scalar accumulators: Warp's adjoint of in-place vector-component
+    updates is not reliable.)"""
+    c = wp.tid()
+    q = pairs[c]
+    w = weights[c]
+    zero = wp.float64(0.0)
+    split = 1
+    if kinds[c] == PAIR_EDGE_EDGE:
+        split = 2
+    body_a = int(-1)
+    body_b = int(-1)
+    wa = zero
+    wb = zero
+    ra = wp.vec3d(zero, zero, zero)
+    rb = wp.vec3d(zero, zero, zero)
+    for k in range(4):
+        v = q[k]
+        if vertex_type[v] == VERTEX_BODY:
+            if k < split:
+                body_a = vertex_owner[v]
+                wa = wa + w[k]
+                ra = ra + w[k] * lever[v]
+            else:
+                body_b = vertex_owner[v]
+                wb = wb + w[k]
+                rb = rb + w[k] * lever[v]
+    side_body[c] = wp.vec2i(body_a, body_b)
+    side_weight[c] = wp.vec2d(wa, wb)
+    rho_a[c] = ra
+    rho_b[c] = rb
+
+
+@wp.func
+def contact_response(
+    c: int,
+    d: int,
+    g: wp.vec3d,
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+) -> wp.vec3d:
+    """Change of the relative velocity of contact ``c`` caused by an impulse ``g`` at contact
+    ``d`` (the Delassus operator's 3x3 block times ``g``)."""
+    zero = wp.float64(0.0)
+    out = wp.vec3d(zero, zero, zero)
+    qc = pairs[c]
+    qd = pairs[d]
+    wc = weights[c]
+    wd = weights[d]
+    for k in range(4):
+        if vertex_type[qc[k]] == VERTEX_PARTICLE:
+            for l in range(4):
+                if vertex_type[qd[l]] == VERTEX_PARTICLE and vertex_owner[qc[k]] == vertex_owner[qd[l]]:
+                    out = out + (wc[k] * wd[l] * particle_inv_mass[vertex_owner[qc[k]]]) * g
+    bc = side_body[c]
+    bd = side_body[d]
+    wsc = side_weight[c]
+    wsd = side_weight[d]
+    for s in range(2):
+        body = bc[s]
+        if body >= 0:
+            rc = rho_a[c]
+            if s == 1:
+                rc = rho_b[c]
+            for t in range(2):
+                if bd[t] == body:
+                    rd = rho_a[d]
+                    if t == 1:
+                        rd = rho_b[d]
+                    out = out + (wsc[s] * wsd[t] * body_inv_mass[body]) * g
+                    out = out - wp.cross(rc, body_inv_inertia[body] * wp.cross(rd, g))
+    return out
+
+
+@wp.kernel
+def delassus_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    regularization: wp.float64,
+    matrix: wp.array2d(dtype=wp.float64),
+):
+    """Entry (r, u) of the active set's normal system: the normal relative velocity of active
+    contact ``r`` per unit normal impulse at active contact ``u`` (``n_r . K_ru n_u``); the
+    diagonal is scaled by ``1 + regularization`` so that redundant contacts (a singular matrix)
+    still give a unique, bounded solution."""
+    r, u = wp.tid()
+    c = unknown_contact[r]
+    d = unknown_contact[u]
+    resp = contact_response(
+        c, d, normals[d], pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
+        particle_inv_mass, body_inv_mass, body_inv_inertia,
+    )
+    value = wp.dot(normals[c], resp)
+    if r == u:
+        value = value * (wp.float64(1.0) + regularization)
+    matrix[r, u] = value
+
+
+@wp.func
+def relative_velocity(
+    c: int,
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+) -> wp.vec3d:
+    q = pairs[c]
+    w = weights[c]
+    vrel = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for k in range(4):
+        vrel = vrel + w[k] * vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    return vrel
+
+
+@wp.kernel
+def contact_rhs_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    targets: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    rhs: wp.array(dtype=wp.float64),
+):
+    """Right-hand side of equation ``tid``: target minus current normal relative velocity."""
+    r = wp.tid()
+    c = unknown_contact[r]
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    rhs[r] = targets[c] - wp.dot(normals[c], vrel)
+
+
+@wp.kernel
+def dense_solve_kernel(
+    matrix: wp.array2d(dtype=wp.float64),
+    rhs: wp.array(dtype=wp.float64),
+    transpose: int,
+    work: wp.array2d(dtype=wp.float64),
+    solution: wp.array(dtype=wp.float64),
+):
+    """``solution = A^-1 rhs`` (``A^-T rhs`` when ``transpose``) by Gaussian elimination with
+    partial pivoting, launched with ``dim=1``. Not differentiated by the tape: the caller records
+    the implicit adjoint (a solve with the transposed matrix) instead."""
+    n = rhs.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if transpose != 0:
+                work[i, j] = matrix[j, i]
+            else:
+                work[i, j] = matrix[i, j]
+        solution[i] = rhs[i]
+    for k in range(n):
+        p = k
+        best = wp.abs(work[k, k])
+        for i in range(k + 1, n):
+            if wp.abs(work[i, k]) > best:
+                best = wp.abs(work[i, k])
+                p = i
+        if p != k:
+            for j in range(n):
+                tmp = work[k, j]
+                work[k, j] = work[p, j]
+                work[p, j] = tmp
+            tmp = solution[k]
+            solution[k] = solution[p]
+            solution[p] = tmp
+        pivot = work[k, k]
+        if pivot != wp.float64(0.0):
+            for i in range(k + 1, n):
+                f = work[i, k] / pivot
+                if f != wp.float64(0.0):
+                    for j in range(k, n):
+                        work[i, j] = work[i, j] - f * work[k, j]
+                    solution[i] = solution[i] - f * solution[k]
+    for kk in range(n):
+        k = n - 1 - kk
+        s = solution[k]
+        for j in range(k + 1, n):
+            s = s - work[k, j] * solution[j]
+        if work[k, k] != wp.float64(0.0):
+            solution[k] = s / work[k, k]
+        else:
+            solution[k] = wp.float64(0.0)
+
+
+@wp.kernel
+def solve_adjoint_kernel(
+    adjoint: wp.array(dtype=wp.float64),
+    solution: wp.array(dtype=wp.float64),
+    matrix_grad: wp.array2d(dtype=wp.float64),
+    rhs_grad: wp.array(dtype=wp.float64),
+):
+    """Implicit adjoint of ``x = A^-1 b`` given ``mu = A^-T x_bar``: ``b_bar += mu``,
+    ``A_bar -= mu x^T`` (launched over (n, n))."""
+    r, u = wp.tid()
+    matrix_grad[r, u] = matrix_grad[r, u] - adjoint[r] * solution[u]
+    if u == 0:
+        rhs_grad[r] = rhs_grad[r] + adjoint[r]
+
+
+@wp.kernel
+def normal_impulses_kernel(
+    contact_unknown: wp.array(dtype=wp.int32),
+    solution: wp.array(dtype=wp.float64),
+    normals: wp.array(dtype=wp.vec3d),
+    impulses: wp.array(dtype=wp.vec3d),
+):
+    """Impulse vector of contact ``tid``: its solved normal impulse times the normal (zero for
+    inactive contacts, ``contact_unknown < 0``)."""
+    c = wp.tid()
+    u = contact_unknown[c]
+    if u >= 0:
+        impulses[c] = solution[u] * normals[c]
+    else:
+        impulses[c] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
+def friction_impulses_kernel(
+    normal_impulses: wp.array(dtype=wp.vec3d),
+    share: wp.array(dtype=wp.float64),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    friction: wp.float64,
+    impulses: wp.array(dtype=wp.vec3d),
+):
+    """Coulomb friction impulse of contact ``tid`` after its normal impulse ``j_n``: the
+    impulse that stops the tangential relative velocity ``v_t`` (``-v_t / k_t``, ``k_t`` the
+    contact's inverse effective mass along ``v_t``) when it lies within ``mu |j_n|`` (sticking),
+    else ``-mu |j_n| v_t / |v_t|`` (sliding); scaled by ``share`` (one over the most active
+    contacts any of its particles or bodies takes part in, so that contacts applied together do
+    not over-correct a shared vertex)."""
+    c = wp.tid()
+    zero = wp.float64(0.0)
+    n = normals[c]
+    jn = wp.length(normal_impulses[c])
+    impulses[c] = wp.vec3d(zero, zero, zero)
+    if jn > zero:
+        vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+        vt = vrel - wp.dot(vrel, n) * n
+        speed = wp.length(vt)
+        if speed > zero:
+            t = vt / speed
+            kt = wp.dot(t, contact_response(
+                c, c, t, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
+                particle_inv_mass, body_inv_mass, body_inv_inertia,
+            ))
+            if kt > zero:
+                stop = speed / kt
+                limit = friction * jn
+                impulses[c] = -(share[c] * wp.min(stop, limit)) * t
+
+
+@wp.kernel
+def apply_impulses_kernel(
+    impulses: wp.array(dtype=wp.vec3d),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    particle_dv: wp.array(dtype=wp.vec3d),
+    body_dv: wp.array(dtype=wp.vec3d),
+    body_dw: wp.array(dtype=wp.vec3d),
+):
+    """Impulse of contact ``tid`` accumulated into the velocity changes of its particles
+    (``w_k j / m``) and bodies (``W j / m``, ``I^-1 (rho x j)``)."""
+    c = wp.tid()
+    j = impulses[c]
+    q = pairs[c]
+    w = weights[c]
+    for k in range(4):
+        if vertex_type[q[k]] == VERTEX_PARTICLE:
+            o = vertex_owner[q[k]]
+            wp.atomic_add(particle_dv, o, (w[k] * particle_inv_mass[o]) * j)
+    b = side_body[c]
+    ws = side_weight[c]
+    if b[0] >= 0:
+        wp.atomic_add(body_dv, b[0], (ws[0] * body_inv_mass[b[0]]) * j)
+        wp.atomic_add(body_dw, b[0], body_inv_inertia[b[0]] * wp.cross(rho_a[c], j))
+    if b[1] >= 0:
+        wp.atomic_add(body_dv, b[1], (ws[1] * body_inv_mass[b[1]]) * j)
+        wp.atomic_add(body_dw, b[1], body_inv_inertia[b[1]] * wp.cross(rho_b[c], j))
+
+
+@wp.kernel
+def add_particle_velocity_kernel(
+    particle_qd: wp.array(dtype=wp.vec3d),
+    dv: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec3d),
+):
+    i = wp.tid()
+    out[i] = particle_qd[i] + dv[i]
+
+
+@wp.kernel
+def add_body_velocity_kernel(
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    dv: wp.array(dtype=wp.vec3d),
+    dw: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.spatial_vectord),
+):
+    b = wp.tid()
+    t = body_qd[b]
+    w = wp.spatial_top(t) + dw[b]
+    v = wp.spatial_bottom(t) + dv[b]
+    out[b] = wp.spatial_vectord(w[0], w[1], w[2], v[0], v[1], v[2])
+
+
+@wp.func
+def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
+    """``q`` turned by the world angular velocity ``omega`` [rad/s] for ``duration`` [s]: the
+    exact rotation (axis-angle), renormalised; smooth at ``omega = 0`` (series of sin(x/2)/x)."""
+    th2 = wp.dot(omega, omega) * duration * duration
+    s = wp.float64(0.5) - th2 / wp.float64(48.0)
+    c = wp.float64(1.0) - th2 / wp.float64(8.0) + th2 * th2 / wp.float64(384.0)
+    if th2 > wp.float64(1.0e-8):
+        th = wp.sqrt(th2)
+        s = wp.sin(wp.float64(0.5) * th) / th
+        c = wp.cos(wp.float64(0.5) * th)
+    a = omega * (duration * s)
+    return wp.normalize(wp.quatd(a[0], a[1], a[2], c) * q)
+
+
+@wp.kernel
+def time_of_impact_particles_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x_pred: wp.array(dtype=wp.vec3d),
+    v_minus: wp.array(dtype=wp.vec3d),
+    v_plus: wp.array(dtype=wp.vec3d),
+    owner_contact: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    x1: wp.array(dtype=wp.vec3d),
+):
+    """Time-of-impact integration ``x0 + t* v- + (h - t*) v+`` of particle ``tid`` with the
+    ``t*`` of its earliest contact ``owner_contact`` (-1: no contact, the prediction stays;
+    -2: impact zone, ``x0 + h v+``)."""
+    i = wp.tid()
+    k = owner_contact[i]
+    if k == -1:
+        x1[i] = x_pred[i]
+    elif k == -2:
+        x1[i] = x0[i] + h * v_plus[i]
+    else:
+        ts = toi[k]
+        x1[i] = x0[i] + ts * v_minus[i] + (h - ts) * v_plus[i]
+
+
+@wp.kernel
+def time_of_impact_bodies_kernel(
+    q0: wp.array(dtype=wp.transformd),
+    q_pred: wp.array(dtype=wp.transformd),
+    v_minus: wp.array(dtype=wp.spatial_vectord),
+    v_plus: wp.array(dtype=wp.spatial_vectord),
+    owner_contact: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    q1: wp.array(dtype=wp.transformd),
+):
+    """The same for body ``tid``: the centre of mass as a particle, the orientation turned by
+    ``w-`` for ``t*`` and by ``w+`` for ``h - t*``."""
+    b = wp.tid()
+    k = owner_contact[b]
+    if k == -1:
+        q1[b] = q_pred[b]
+        return
+    ts = wp.float64(0.0)
+    if k >= 0:
+        ts = toi[k]
+    X = q0[b]
+    tm = v_minus[b]
+    tp = v_plus[b]
+    p = wp.transform_get_translation(X) + ts * wp.spatial_bottom(tm) + (h - ts) * wp.spatial_bottom(tp)
+    r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(tm), ts), wp.spatial_top(tp), h - ts)
+    q1[b] = wp.transformd(p, r)
+

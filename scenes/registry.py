@@ -31,6 +31,7 @@ SCENES: dict[str, str] = {
     "cloth_drop": "scenes.cloth_drop",
     "rigid_toss": "scenes.rigid_toss",
     "cloth_rigid": "scenes.cloth_rigid",
+    "grazing": "scenes.grazing",
 }
 """Scene name -> module path."""
 

@@ -189,10 +189,11 @@ class State:
     body_qd: wp.array
 
     def numpy(self) -> dict:
-        """Copies of all arrays as numpy (for logging and tests)."""
+        """Copies of all arrays as numpy (for logging and tests; on the CPU ``wp.array.numpy()``
+        is a view of memory a stepper may reuse, so these are real copies)."""
         return {
-            "particle_q": self.particle_q.numpy(),
-            "particle_qd": self.particle_qd.numpy(),
-            "body_q": self.body_q.numpy(),
-            "body_qd": self.body_qd.numpy(),
+            "particle_q": self.particle_q.numpy().copy(),
+            "particle_qd": self.particle_qd.numpy().copy(),
+            "body_q": self.body_q.numpy().copy(),
+            "body_qd": self.body_qd.numpy().copy(),
         }

@@ -6,6 +6,7 @@ static plate (many radii per step) never pass through.
 """
 
 import numpy as np
+import pytest
 import warp as wp
 
 from sim.builder import ModelBuilder
@@ -13,6 +14,7 @@ from collision.response import ImpulseCollisionHandler
 from sim.integrator import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
+from sim.rotation import quat_rotate
 
 wp.init()
 
@@ -72,3 +74,32 @@ def test_fast_ball_does_not_tunnel_through_a_thin_plate():
     state, worst = _run(b.finalize(), steps=12, dt=1 / 60, substeps=1)
     assert worst == (0, 0.0)
     assert state.body_q.numpy()[0, 2] > 0.0  # bounced back, above the plate
+
+
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_rigid_box_rests_on_ground_plane(differentiable):
+    """A spinning box dropped on ``add_ground_plane()`` comes to rest on it (its vertices are
+    vertex-plane contacts of the mesh pipeline); before, it fell through (z = -4.4 m after 1 s)."""
+    from sim.integrator import SemiImplicitIntegrator
+    from sim.mesh_io import box_mesh
+
+    b = ModelBuilder()
+    b.add_rigid_body(*box_mesh(0.1), density=500.0, pos=(0.0, 0.0, 0.5), angular_velocity=(1.0, 0.5, 0.0))
+    b.add_ground_plane()
+    b.set_contact(restitution=0.2, friction=0.4)
+    model = b.finalize()
+    integ = SemiImplicitIntegrator(model)
+    integ.collision_handler = ImpulseCollisionHandler(model, differentiable=differentiable)
+    s = model.state()
+    lowest = []
+    for _ in range(90):
+        s_next = model.state()
+        integ.step(s, s_next, 1.0 / 60.0, 8)
+        s = s_next
+        q = s.body_q.numpy()[0]
+        corners = quat_rotate(np.tile(q[3:7], (8, 1)), box_mesh(0.1)[0]) + q[:3]
+        lowest.append(corners[:, 2].min())
+    assert min(lowest) > -1e-6  # never below the plane
+    assert abs(s.body_q.numpy()[0, 2] - 0.1) < 2e-3  # resting on a face (half extent 0.1 m)
+    # Gauss-Seidel leaves a resting jitter (measured 0.1 rad/s); the exact replayed solve does not
+    assert np.abs(s.body_qd.numpy()[0]).max() < (0.02 if differentiable else 0.2)

@@ -1,0 +1,299 @@
+"""The taped half of the collision response: "decide, then replay" (design.md).
+
+:class:`ContactReplay` owns the Warp launches that turn the decisions of
+:class:`collision.response.ImpulseCollisionHandler` (which pairs are contacts, from which root
+slot, which contacts carry an impulse and whether they stick or slide, which contact comes first
+for each particle or body) into the new velocities and positions. Every launch here is recorded on
+the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differentiable:
+
+* ``t*`` of each CCD contact comes from its coplanarity cubic through :func:`kernels.roots.cubic_roots`
+  (mollified implicit derivative, bounded by ``max_derivative``);
+* weights and normals at ``t*`` come from the one closest-point definition
+  (:func:`kernels.point_triangle.point_triangle_closest`, :func:`kernels.edge_edge.segment_segment_closest`);
+* the impulses solve the active set's equations exactly (dense LU in a Warp kernel); the tape
+  holds the implicit adjoint of that solve (a solve with the transposed matrix), never iterations;
+* time-of-impact integration ``x0 + t* v- + (h - t*) v+`` per particle and body.
+
+Arrays are never written after a launch read them (fresh outputs per call), so the tape can be
+replayed backwards. Without an active tape nothing is recorded and the same launches give the
+forward result: the value and its gradient belong to one function.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+import warp._src.context as _warp_context
+
+from kernels import contact as K
+
+REGULARIZATION = 1e-8
+"""Relative diagonal regularisation of the active set's matrix: redundant contacts (two
+constraints on the same relative velocity) make it singular; scaling the diagonal by
+``1 + 1e-10`` picks a bounded solution while moving velocities by ~1e-10 relative."""
+
+
+def active_tape():
+    """The ``wp.Tape`` currently recording (None outside ``with tape:``)."""
+    runtime = _warp_context.runtime
+    return runtime.tape if runtime is not None else None
+
+
+class ContactReplay:
+    """Device arrays and taped launches of the collision response of one model.
+
+    Args:
+        vertex_type, vertex_owner: (V,) int per collidable vertex (0 particle, 1 rigid, 2
+            static; owner = particle / body index). One dummy static vertex is appended here (index
+            ``V``), the second side of vertex-plane contacts.
+        local: (V, 3) body-frame positions of rigid vertices (relative to the centre of mass) and
+            world positions of static ones (anything for particles).
+        particle_inv_mass, body_inv_mass, body_inv_inertia: the model's arrays (may be empty).
+        planes: (K, 4) plane normals and offsets.
+        device: Warp device.
+    """
+
+    def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
+                 planes, friction: float, restitution: float, device):
+        self.device = device
+        self.n_vertices = len(vertex_type)
+        vt = np.append(np.asarray(vertex_type, dtype=np.int32), 2)  # the dummy is static
+        vo = np.append(np.asarray(vertex_owner, dtype=np.int32), 0)
+        self.vertex_type = wp.array(vt.astype(np.int32), dtype=wp.int32, device=device)
+        self.vertex_owner = wp.array(vo.astype(np.int32), dtype=wp.int32, device=device)
+        loc = np.zeros((self.n_vertices + 1, 3))
+        loc[: self.n_vertices] = local
+        self.local = wp.array(loc, dtype=wp.vec3d, device=device)
+        self.particle_inv_mass = particle_inv_mass if particle_inv_mass is not None and particle_inv_mass.shape[0] else wp.zeros(1, dtype=wp.float64, device=device)
+        self.body_inv_mass = body_inv_mass if body_inv_mass is not None and body_inv_mass.shape[0] else wp.zeros(1, dtype=wp.float64, device=device)
+        self.body_inv_inertia_body = body_inv_inertia
+        p = np.zeros((1, 4)) if planes is None or len(planes) == 0 else np.asarray(planes, dtype=np.float64)
+        self.planes = wp.array(p, dtype=wp.vec4d, device=device)
+        self.friction = float(friction)
+        self.restitution = float(restitution)
+        self._empty_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
+        self._empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
+        self._empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
+        self.solves = 0
+        self.largest_system = 0
+
+    # ------------------------------------------------------------------ helpers
+    def _grad(self) -> bool:
+        return active_tape() is not None
+
+    def _zeros(self, n, dtype, shape=None):
+        return wp.zeros(shape if shape is not None else n, dtype=dtype, device=self.device, requires_grad=self._grad())
+
+    def _ints(self, a, dtype=wp.int32):
+        a = np.ascontiguousarray(a)
+        if a.shape[0] == 0:
+            a = np.zeros((1,) + a.shape[1:], dtype=a.dtype)
+        return wp.array(a.astype(np.int32), dtype=dtype, device=self.device)
+
+    def _floats(self, a, dtype=wp.float64):
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        if a.shape[0] == 0:
+            a = np.zeros((1,) + a.shape[1:])
+        return wp.array(a, dtype=dtype, device=self.device)
+
+    @staticmethod
+    def _or(a, empty):
+        return a if a is not None and a.shape[0] else empty
+
+    # ------------------------------------------------------------------ stages
+    def pose(self, particle_q, body_q):
+        """World positions and lever arms of all collidable vertices (+ the dummy vertex)."""
+        n = self.n_vertices + 1
+        x = self._zeros(n, wp.vec3d)
+        lever = self._zeros(n, wp.vec3d)
+        wp.launch(
+            K.pose_vertices_kernel, dim=n,
+            inputs=[self._or(particle_q, self._empty_vec), self._or(body_q, self._empty_pose), self.vertex_type,
+                    self.vertex_owner, self.local],
+            outputs=[x, lever], device=self.device,
+        )
+        return x, lever
+
+    def world_inverse_inertia(self, body_q):
+        """World inverse inertia tensors at the poses ``body_q`` (B,) (a dummy when B = 0)."""
+        if body_q is None or body_q.shape[0] == 0:
+            return wp.zeros(1, dtype=wp.mat33d, device=self.device)
+        out = self._zeros(body_q.shape[0], wp.mat33d)
+        wp.launch(K.body_world_inverse_inertia_kernel, dim=body_q.shape[0],
+                  inputs=[body_q, self.body_inv_inertia_body], outputs=[out], device=self.device)
+        return out
+
+    def geometry(self, x0, x1, lever, rows, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
+                 separation, separation_rate, touching_relative, max_derivative):
+        """Times of impact [s], weights, normals and targets of new contact rows.
+
+        ``rows``: dict of host arrays ``pairs`` (C, 4), ``kinds``, ``sources``, ``detected``
+        (fraction of the substep), ``plane_ids``. ``particle_time`` / ``body_time``: host times
+        of impact already assigned to each owner (inf for none).
+        """
+        c = len(rows["kinds"])
+        toi = self._zeros(c, wp.float64)
+        w = self._zeros(c, wp.vec4d)
+        n = self._zeros(c, wp.vec3d)
+        target = self._zeros(c, wp.float64)
+        wp.launch(
+            K.contact_geometry_kernel, dim=c,
+            inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, self._ints(rows["pairs"], wp.vec4i),
+                    self._ints(rows["kinds"]), self._ints(rows["sources"]), self._floats(rows["detected"]),
+                    self._ints(rows["plane_ids"]), self.planes,
+                    self._or(vm_p, self._empty_vec), self._or(vc_p, self._empty_vec),
+                    self._or(vm_b, self._empty_twist), self._or(vc_b, self._empty_twist),
+                    self._floats(particle_time), self._floats(body_time), wp.float64(h), wp.float64(separation),
+                    wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
+                    wp.float64(max_derivative)],
+            outputs=[toi, w, n, target], device=self.device,
+        )
+        return toi, w, n, target
+
+    def merge(self, old, new, new_index, keep_old_toi, keep_old_target):
+        """The grown contact set's (toi, targets, weights, normals): old rows (``new_index`` -1)
+        or this round's detections, as decided per row."""
+        c = len(new_index)
+        out = (self._zeros(c, wp.float64), self._zeros(c, wp.float64), self._zeros(c, wp.vec4d), self._zeros(c, wp.vec3d))
+        if old is None:
+            old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d))
+        wp.launch(
+            K.merge_contacts_kernel, dim=c,
+            inputs=[*old, *new, self._ints(new_index), self._ints(keep_old_toi), self._ints(keep_old_target)],
+            outputs=list(out), device=self.device,
+        )
+        return out
+
+    def solve(self, contacts, pairs, kinds, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
+        """Exact normal impulses of an active set, then Coulomb friction, and the velocities.
+
+        Args:
+            contacts: (toi, targets, weights, normals) device arrays of the whole set (C,).
+            pairs, kinds: host (C, 4), (C,) of the set.
+            active: host bool (C,): the contacts whose normal relative velocity must end at
+                their target (the others get no impulse).
+            lever, inv_inertia_w: start-pose lever arms and world inverse inertia tensors.
+            vm_p, vm_b: the velocities before any impulse (``v-``).
+            share: host (C,) friction share factors (see
+                :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
+
+        Returns:
+            (particle_qd, body_qd, normal impulses (C,) vec3): device arrays; the normal
+            impulses are those of the last normal pass (after friction, when there is any).
+        """
+        _, targets, weights, normals = contacts
+        c = len(kinds)
+        pairs_w = self._ints(pairs, wp.vec4i)
+        kinds_w = self._ints(kinds)
+        vm_p_ = self._or(vm_p, self._empty_vec)
+        vm_b_ = self._or(vm_b, self._empty_twist)
+        sides = (wp.zeros(c, dtype=wp.vec2i, device=self.device), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
+                 self._zeros(c, wp.vec3d))
+        wp.launch(K.contact_sides_kernel, dim=c,
+                  inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
+                  outputs=list(sides), device=self.device)
+        unknowns = np.flatnonzero(active).astype(np.int32)
+        n_u = len(unknowns)
+        contact_unknown = np.full(c, -1, dtype=np.int32)
+        contact_unknown[unknowns] = np.arange(n_u, dtype=np.int32)
+        masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
+        if not n_u:
+            return vm_p, vm_b, self._zeros(c, wp.vec3d)
+        self.solves += 1
+        self.largest_system = max(self.largest_system, n_u)
+        uc = self._ints(unknowns)
+        cu = self._ints(contact_unknown)
+        matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
+        wp.launch(K.delassus_kernel, dim=(n_u, n_u),
+                  inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
+                          wp.float64(REGULARIZATION)],
+                  outputs=[matrix], device=self.device)
+
+        def normal_pass(vp, vb):
+            # normal impulses that bring every active contact's normal velocity to its target
+            rhs = self._zeros(n_u, wp.float64)
+            wp.launch(K.contact_rhs_kernel, dim=n_u,
+                      inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
+                              self._or(vp, self._empty_vec), self._or(vb, self._empty_twist)],
+                      outputs=[rhs], device=self.device)
+            solution = self._dense_solve(matrix, rhs)
+            normal = self._zeros(c, wp.vec3d)
+            wp.launch(K.normal_impulses_kernel, dim=c, inputs=[cu, solution, normals], outputs=[normal],
+                      device=self.device)
+            return normal, self._apply(normal, pairs_w, weights, sides, masses, vp, vb, True)
+
+        normal, (vp, vb) = normal_pass(vm_p, vm_b)
+        if share is not None and self.friction > 0.0:
+            # Coulomb friction from the normal impulses, then the normal impulses again on top of
+            # the friction (a rigid body's friction impulse changes its normal velocities too)
+            friction = self._zeros(c, wp.vec3d)
+            wp.launch(K.friction_impulses_kernel, dim=c,
+                      inputs=[normal, self._floats(share), pairs_w, weights, normals, self.vertex_type,
+                              self.vertex_owner, lever, *sides, *masses, self._or(vp, self._empty_vec),
+                              self._or(vb, self._empty_twist), wp.float64(self.friction)],
+                      outputs=[friction], device=self.device)
+            vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b, True)
+            normal, (vp, vb) = normal_pass(vp_f, vb_f)
+        return vp, vb, normal
+
+    def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, any_impulse: bool):
+        """Velocities after the contact ``impulses`` (fresh arrays; the inputs when none)."""
+        p_count = vp.shape[0] if vp is not None else 0
+        b_count = vb.shape[0] if vb is not None else 0
+        if not any_impulse:
+            return vp, vb
+        particle_dv = self._zeros(max(p_count, 1), wp.vec3d)
+        body_dv = self._zeros(max(b_count, 1), wp.vec3d)
+        body_dw = self._zeros(max(b_count, 1), wp.vec3d)
+        wp.launch(K.apply_impulses_kernel, dim=len(impulses),
+                  inputs=[impulses, pairs_w, weights, self.vertex_type, self.vertex_owner, *sides, *masses],
+                  outputs=[particle_dv, body_dv, body_dw], device=self.device)
+        out_p, out_b = vp, vb
+        if p_count:
+            out_p = self._zeros(p_count, wp.vec3d)
+            wp.launch(K.add_particle_velocity_kernel, dim=p_count, inputs=[vp, particle_dv], outputs=[out_p],
+                      device=self.device)
+        if b_count:
+            out_b = self._zeros(b_count, wp.spatial_vectord)
+            wp.launch(K.add_body_velocity_kernel, dim=b_count, inputs=[vb, body_dv, body_dw], outputs=[out_b],
+                      device=self.device)
+        return out_p, out_b
+
+    def _dense_solve(self, matrix, rhs):
+        """``A^-1 b`` with the implicit adjoint recorded on the active tape."""
+        n = rhs.shape[0]
+        work = wp.zeros((n, n), dtype=wp.float64, device=self.device)
+        solution = self._zeros(n, wp.float64)
+        wp.launch(K.dense_solve_kernel, dim=1, inputs=[matrix, rhs, 0], outputs=[work, solution],
+                  device=self.device, record_tape=False)
+        tape = active_tape()
+        if tape is not None:
+            device = self.device
+
+            def backward():
+                adjoint = wp.zeros(n, dtype=wp.float64, device=device)
+                scratch = wp.zeros((n, n), dtype=wp.float64, device=device)
+                wp.launch(K.dense_solve_kernel, dim=1, inputs=[matrix, solution.grad, 1], outputs=[scratch, adjoint],
+                          device=device)
+                wp.launch(K.solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
+                          outputs=[matrix.grad, rhs.grad], device=device)
+
+            tape.record_func(backward, [matrix, rhs, solution])
+        return solution
+
+    def integrate(self, x0p, x_pred, vm_p, vp, bq0, bq_pred, vm_b, vb, particle_owner, body_owner, toi, h):
+        """Time-of-impact integration of particles and bodies (owner contact -1: the prediction
+        stays; -2: an impact zone's rigid motion over the whole substep)."""
+        xp = x_pred
+        if x0p is not None and x0p.shape[0]:
+            xp = self._zeros(x0p.shape[0], wp.vec3d)
+            wp.launch(K.time_of_impact_particles_kernel, dim=x0p.shape[0],
+                      inputs=[x0p, x_pred, vm_p, vp, self._ints(particle_owner), toi, wp.float64(h)],
+                      outputs=[xp], device=self.device)
+        bq = bq_pred
+        if bq0 is not None and bq0.shape[0]:
+            bq = self._zeros(bq0.shape[0], wp.transformd)
+            wp.launch(K.time_of_impact_bodies_kernel, dim=bq0.shape[0],
+                      inputs=[bq0, bq_pred, vm_b, vb, self._ints(body_owner), toi, wp.float64(h)],
+                      outputs=[bq], device=self.device)
+        return xp, bq
