@@ -31,6 +31,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/roots.py
 	$(PY) benchmarks/ccd.py --max-iterations 1000000 --generated --mesh
 	$(PY) benchmarks/sim.py
+	$(PY) benchmarks/rollout.py
+	$(PY) benchmarks/grazing.py
 
 fuzz: $(STAMP)
 	$(PY) benchmarks/fuzz_roots.py

@@ -171,9 +171,13 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--substeps", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--scenes-only", action="store_true", help="only the per-scene table with collisions")
     ap.add_argument("--scene-steps", type=int, default=300,
                     help="steps per scene in the full-step table (default 300)")
     args = ap.parse_args(argv)
+    if args.scenes_only:
+        scene_table(args.scene_steps)
+        return
 
     import torch
 
@@ -239,25 +243,28 @@ def scene_table(steps: int) -> None:
     """Full steps per second of each simulation scene at its defaults (dt 1/60 s, 8 substeps):
     forces + integration + plane contacts + the mesh collision handler (proximity, CCD rounds,
     impulses, impact zones), from the first frame on (so the free-fall phase and the contact phase
-    both count). The same model without the collision handler is timed as the reference, which
-    shows what the collision handling costs."""
+    both count), for both forms of the response: Gauss-Seidel impulses (``ImpulseCollisionHandler``)
+    and the replayed exact solve (``differentiable=True``, no tape recording). The same model
+    without the collision handler is timed as the reference, which shows what the collision
+    handling costs."""
     from scenes import cloth_drop, cloth_rigid, rigid_toss
     from scenes.sim_common import build_model, default_args
     from collision.response import ImpulseCollisionHandler
 
     print(f"Full steps per second with collisions, per scene ({steps} steps of 1/60 s in 8 substeps, "
           "from the start; one CPU thread):")
-    head = (f"{'scene':12s} {'particles':>9s} {'bodies':>6s} {'faces':>6s} | {'steps/s':>8s} {'ms/step':>8s} "
-            f"{'contacts/step':>13s} {'fail-safe':>9s} | {'no-collision steps/s':>20s} {'ratio':>6s}")
+    head = (f"{'scene':12s} {'response':9s} {'particles':>9s} {'bodies':>6s} {'faces':>6s} | {'steps/s':>8s} "
+            f"{'ms/step':>8s} {'contacts/step':>13s} {'fail-safe':>9s} | {'no-collision steps/s':>20s} "
+            f"{'collision cost':>14s}")
     print(head)
     print("-" * len(head))
     for module in (cloth_drop, rigid_toss, cloth_rigid):
         args = default_args()
         model = build_model(module.build, args)
         rates = {}
-        for with_collisions in (True, False):
+        for mode in ("none", "pgs", "replayed"):
             integrator = SemiImplicitIntegrator(model)
-            handler = ImpulseCollisionHandler(model) if with_collisions else None
+            handler = None if mode == "none" else ImpulseCollisionHandler(model, differentiable=mode == "replayed")
             contacts = [0]
             if handler is not None:
                 def hook(s_in, s_pred, h, handler=handler, contacts=contacts):
@@ -273,17 +280,21 @@ def scene_table(steps: int) -> None:
             for _ in range(steps):
                 integrator.step(s0, s1, args.dt, args.substeps)
                 s0, s1 = s1, s0
-            rates[with_collisions] = (steps / (time.perf_counter() - t0), contacts[0] / steps,
-                                      handler.failsafe_count if handler else 0)
-        (sps, cps, fs), (ref, _, _) = rates[True], rates[False]
+            rates[mode] = (steps / (time.perf_counter() - t0), contacts[0] / steps,
+                           handler.failsafe_count if handler else 0)
+        ref = rates["none"][0]
         faces = int(model.tri_count) + (model.shape_faces.shape[0] if model.shape_faces is not None else 0) \
             + (model.static_faces.shape[0] if model.static_faces is not None else 0)
-        print(f"{module.NAME:12s} {model.particle_count:9d} {model.body_count:6d} {faces:6d} | {sps:8.1f} "
-              f"{1e3 / sps:8.1f} {cps:13.1f} {fs:9d} | {ref:20.1f} {ref / sps:6.1f}")
+        for mode in ("pgs", "replayed"):
+            sps, cps, fs = rates[mode]
+            # collision cost: time of the collision handling per step over the force+integration step
+            cost = (1.0 / sps - 1.0 / ref) * ref
+            print(f"{module.NAME:12s} {mode:9s} {model.particle_count:9d} {model.body_count:6d} {faces:6d} | "
+                  f"{sps:8.1f} {1e3 / sps:8.1f} {cps:13.1f} {fs:9d} | {ref:20.1f} {cost:13.1f}x")
     print("-" * len(head))
     print("contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
-          "substeps that needed rigid impact zones; ratio: how many times slower the step is with "
-          "collision handling than without.")
+          "substeps that needed rigid impact zones; collision cost: time spent in collision handling "
+          "per step, in multiples of the step without it (forces + integration + plane contacts).")
 
 
 if __name__ == "__main__":

@@ -37,6 +37,11 @@ DEFAULT_STEPS = 120
 DEFAULT_DT = 1.0 / 60.0
 DEFAULT_SUBSTEPS = 8
 DEFAULT_DEVICE = "cpu"
+RESPONSES = ("gauss-seidel", "replayed")
+DEFAULT_RESPONSE = "gauss-seidel"
+"""Collision response of the scenes: projected Gauss-Seidel impulses, or the replayed exact solve
+(the differentiable form that :func:`sim.rollout.rollout` uses; see
+:class:`collision.response.ImpulseCollisionHandler`)."""
 
 BuildFn = Callable[[Any, argparse.Namespace], None]
 
@@ -67,12 +72,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=positive_float, default=1.0,
                         help="multiply every length of the scene (and gravity, velocities) by this "
                              "factor, masses and times kept: the same motion, scaled (default 1)")
+    parser.add_argument("--response", choices=RESPONSES, default=DEFAULT_RESPONSE,
+                        help="collision response: Gauss-Seidel impulses or the replayed exact solve "
+                             f"that rollouts differentiate (default {DEFAULT_RESPONSE})")
 
 
 def default_args(**overrides: Any) -> argparse.Namespace:
     """A namespace with the CLI defaults (for in-process runs), updated by ``overrides``."""
     ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
-                            substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0)
+                            substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0,
+                            response=DEFAULT_RESPONSE)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -216,7 +225,8 @@ def simulate(
 
     model = build_model(build, args)
     integrator = SemiImplicitIntegrator(model)
-    handler = ImpulseCollisionHandler(model)
+    handler = ImpulseCollisionHandler(
+        model, differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
     gatherer = ContactGatherer(handler)
     integrator.collision_handler = gatherer
     checker = PenetrationChecker(model)
