@@ -39,6 +39,22 @@ def active_tape():
     return runtime.tape if runtime is not None else None
 
 
+class paused_tape:
+    """Context manager: launches inside are not recorded on the active tape (for trial solves
+    whose results are thrown away; only the final, consistent solve is replayed backwards)."""
+
+    def __enter__(self):
+        self._tape = active_tape()
+        if self._tape is not None:
+            _warp_context.runtime.tape = None
+        return self._tape
+
+    def __exit__(self, *exc):
+        if self._tape is not None:
+            _warp_context.runtime.tape = self._tape
+        return False
+
+
 class ContactReplay:
     """Device arrays and taped launches of the collision response of one model.
 

@@ -50,7 +50,7 @@ import warp as wp
 
 from collision.broad_phase import BroadPhase, mesh_edges
 from collision.ccd import _run as _narrow_phase
-from collision.replay import ContactReplay
+from collision.replay import ContactReplay, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
 from sim.model import Model, State
@@ -744,9 +744,11 @@ class ImpulseCollisionHandler:
             self._solve(cs, vp, bv, r0, inv_inertia_w)
             mobile = ((cs.w != 0) & mobile_type[cs.idx]).any(axis=1)
             active = (cs.jn > 0) & mobile
-            for _ in range(ACTIVE_SET_ITERATIONS):
+            for iteration in range(ACTIVE_SET_ITERATIONS):
                 share = self._friction_share(cs, active) if mu > 0 else None
-                vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
+                # trial solves stay off the tape (their O(n^2) matrices would be kept to the end)
+                with paused_tape() as tape:
+                    vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
                 jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
                 vrel = np.einsum("ck,ckd->cd", cs.w, self._vertex_velocities(
                     cs.idx, vp_d.numpy() if P else vp, vb_d.numpy() if B else bv, r0))
@@ -755,10 +757,15 @@ class ImpulseCollisionHandler:
                 new = active.copy()
                 new[active & (jn < -1e-9 * scale)] = False
                 new[~active & mobile & (vn < cs.target - tol)] = True
-                if (new == active).all():
-                    break
+                if (new == active).all() or iteration == ACTIVE_SET_ITERATIONS - 1:
+                    break  # (the last trial's set stands, taped or not: one forward function)
                 active = new
                 self.active_set_repairs += 1
+            if tape is not None:
+                # the replay of the final active set, recorded
+                share = self._friction_share(cs, active) if mu > 0 else None
+                vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
+                jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
             if P:
                 st["vp"] = vp_d
                 vp[:] = vp_d.numpy()

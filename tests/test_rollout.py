@@ -262,6 +262,6 @@ def test_readme_example_optimises_a_bounce_to_a_target():
         loss = ((res.particle_q[-1, 0] - target) ** 2).sum()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         assert res.stats["contact_substeps"] >= 1
     assert losses[0] > 0.2 and min(losses) < 1e-4
