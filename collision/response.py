@@ -163,6 +163,11 @@ class ImpulseCollisionHandler:
         last_normals: (C, 3) their unit normals.
         last_times: (C,) their times of impact from the start of the substep [s].
         failsafe_count: substeps (over the handler's life) in which the fail-safe froze something.
+        untaped_substeps: substeps (``differentiable=True``) in which impact zones formed: their
+            members' velocities carry no derivative through that substep.
+        active_set_repairs: exact solves redone because the active set changed.
+        unsettled_active_sets: solves whose active set still changed after
+            :data:`ACTIVE_SET_ITERATIONS` repairs (the last trial's set is used).
         separation: the separation ``delta`` [m] the proximity pass keeps.
     """
 
@@ -251,6 +256,7 @@ class ImpulseCollisionHandler:
         self.failsafe_count = 0
         self.untaped_substeps = 0
         self.active_set_repairs = 0
+        self.unsettled_active_sets = 0
         self._replay = None
         if self.differentiable:
             local = np.zeros((self.n_vertices, 3))
@@ -741,7 +747,8 @@ class ImpulseCollisionHandler:
         def exact():
             # decide: the active set from projected Gauss-Seidel, then replay the exact normal
             # solve and repair the set (drop pulling contacts, add violated ones) until it holds
-            self._solve(cs, vp, bv, r0, inv_inertia_w)
+            with paused_tape():
+                self._solve(cs, vp, bv, r0, inv_inertia_w)
             mobile = ((cs.w != 0) & mobile_type[cs.idx]).any(axis=1)
             active = (cs.jn > 0) & mobile
             for iteration in range(ACTIVE_SET_ITERATIONS):
@@ -757,8 +764,11 @@ class ImpulseCollisionHandler:
                 new = active.copy()
                 new[active & (jn < -1e-9 * scale)] = False
                 new[~active & mobile & (vn < cs.target - tol)] = True
-                if (new == active).all() or iteration == ACTIVE_SET_ITERATIONS - 1:
-                    break  # (the last trial's set stands, taped or not: one forward function)
+                if (new == active).all():
+                    break
+                if iteration == ACTIVE_SET_ITERATIONS - 1:
+                    self.unsettled_active_sets += 1
+                    break  # the last trial's set stands, taped or not: one forward function
                 active = new
                 self.active_set_repairs += 1
             if tape is not None:
@@ -778,12 +788,14 @@ class ImpulseCollisionHandler:
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         # 1. proximity contacts at the start of the substep
         kinds, pairs, idxs = [], [], []
-        vf, ee = self.broad_phase.query(x0[:nv], x0[:nv], delta)
+        with paused_tape():  # decisions: off the tape
+            vf, ee = self.broad_phase.query(x0[:nv], x0[:nv], delta)
         if len(vf) + len(ee):
             kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
             pair = np.concatenate([vf, ee])
             idx = self._pair_vertices(kind, pair)
-            near = np.linalg.norm(self._offsets(x0, idx, kind), axis=1) < delta
+            with paused_tape():
+                near = np.linalg.norm(self._offsets(x0, idx, kind), axis=1) < delta
             kinds.append(kind[near])
             pairs.append(pair[near])
             idxs.append(idx[near])
@@ -805,7 +817,8 @@ class ImpulseCollisionHandler:
             X1p, BQ1, t_p, t_b = plan()
             X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
             x1 = X1.numpy()
-            kind, pair, idx, frac, source = self._ccd_candidates(x0, x1)
+            with paused_tape():  # decisions: off the tape
+                kind, pair, idx, frac, source = self._ccd_candidates(x0, x1)
             if len(kind) == 0:
                 break
             # times off the cubic (start, collinear, advancement) enter as constants
@@ -825,11 +838,10 @@ class ImpulseCollisionHandler:
                     break
                 zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
                                        self._body_mass, self._body_inertia_w(bq0))
-                # the zones' rigid motion is computed on the host: no derivative flows through it
-                if P:
-                    st["vp"] = wp.array(vp, dtype=wp.vec3d, device=m.device)
-                if B:
-                    st["vb"] = wp.array(bv, dtype=wp.spatial_vectord, device=m.device)
+                # the zones' rigid motion is computed on the host: no derivative flows through
+                # the zone members' velocities (the others keep theirs)
+                st["vp"], st["vb"] = R.select_zone_velocities(st["vp"], st["vb"], zones.particles, zones.bodies,
+                                                              vp, bv)
                 st["zone"] = True
                 continue
             add(approaching, out, host, kind, pair, idx)

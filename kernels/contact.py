@@ -728,16 +728,17 @@ def friction_impulses_kernel(
     friction: wp.float64,
     impulses: wp.array(dtype=wp.vec3d),
 ):
-    """Coulomb friction impulse of contact ``tid`` after its normal impulse ``j_n``: the
-    impulse that stops the tangential relative velocity ``v_t`` (``-v_t / k_t``, ``k_t`` the
-    contact's inverse effective mass along ``v_t``) when it lies within ``mu |j_n|`` (sticking),
-    else ``-mu |j_n| v_t / |v_t|`` (sliding); scaled by ``share`` (one over the most active
-    contacts any of its particles or bodies takes part in, so that contacts applied together do
-    not over-correct a shared vertex)."""
+    """Coulomb friction impulse of contact ``tid`` after its normal impulse ``j_n`` (> 0): the
+    impulse that stops the tangential relative velocity ``v_t`` (``-share v_t / k_t``, ``k_t``
+    the contact's inverse effective mass along ``v_t``; ``share`` is one over the most active
+    contacts any of its particles or bodies takes part in, so that stopping impulses applied
+    together do not over-correct a shared vertex) when it lies within ``mu j_n`` (sticking), else
+    ``-mu j_n v_t / |v_t|`` (sliding). The branch is taken here, per evaluation (smooth on each
+    side; the derivative of the slip direction grows like ``1 / |v_t|`` near sticking)."""
     c = wp.tid()
     zero = wp.float64(0.0)
     n = normals[c]
-    jn = wp.length(normal_impulses[c])
+    jn = wp.dot(normal_impulses[c], n)  # signed: a pulling contact gets no friction
     impulses[c] = wp.vec3d(zero, zero, zero)
     if jn > zero:
         vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
@@ -750,9 +751,10 @@ def friction_impulses_kernel(
                 particle_inv_mass, body_inv_mass, body_inv_inertia,
             ))
             if kt > zero:
-                stop = speed / kt
+                # only the stopping impulse is shared; the Coulomb limit is the contact's own
+                stop = share[c] * speed / kt
                 limit = friction * jn
-                impulses[c] = -(share[c] * wp.min(stop, limit)) * t
+                impulses[c] = -wp.min(stop, limit) * t
 
 
 @wp.kernel
@@ -885,3 +887,32 @@ def time_of_impact_bodies_kernel(
     r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(tm), ts), wp.spatial_top(tp), h - ts)
     q1[b] = wp.transformd(p, r)
 
+
+@wp.kernel
+def select_particle_velocity_kernel(
+    in_zone: wp.array(dtype=wp.int32),
+    zone_velocity: wp.array(dtype=wp.vec3d),
+    velocity: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec3d),
+):
+    """Impact-zone members take the zone's rigid velocity (computed off the tape), the others
+    keep their (taped) velocity."""
+    i = wp.tid()
+    if in_zone[i] != 0:
+        out[i] = zone_velocity[i]
+    else:
+        out[i] = velocity[i]
+
+
+@wp.kernel
+def select_body_velocity_kernel(
+    in_zone: wp.array(dtype=wp.int32),
+    zone_velocity: wp.array(dtype=wp.spatial_vectord),
+    velocity: wp.array(dtype=wp.spatial_vectord),
+    out: wp.array(dtype=wp.spatial_vectord),
+):
+    b = wp.tid()
+    if in_zone[b] != 0:
+        out[b] = zone_velocity[b]
+    else:
+        out[b] = velocity[b]

@@ -52,8 +52,9 @@ class RolloutResult:
         event_roots: lifted events' roots (E, 3, 2); empty until events are supported.
         stats: counts of the forward pass: ``contact_substeps`` (substeps with a mesh contact),
             ``failsafe_substeps`` (impact zones formed), ``untaped_substeps`` (substeps whose
-            impact-zone motion carries no derivative), ``largest_system`` (most unknowns of one
-            impulse solve).
+            impact-zone members' velocities carry no derivative), ``largest_system`` (most unknowns
+            of one impulse solve), ``unsettled_active_sets`` (impulse solves whose active set did
+            not settle within the repair budget).
     """
 
     particle_q: torch.Tensor
@@ -85,20 +86,19 @@ def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkp
         raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
     if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
         raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
-    try:
-        dt_f = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a positive finite number [s], got {dt!r}") from None
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+        raise ValueError(f"dt must be a positive finite number [s], got {dt!r}")
+    dt_f = float(dt)
     if not math.isfinite(dt_f) or dt_f <= 0.0:
         raise ValueError(f"dt must be a positive finite number [s], got {dt!r}")
     if checkpoint_every is not None and (
         isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, (int, np.integer)) or checkpoint_every < 1
     ):
         raise ValueError(f"checkpoint_every must be None or an integer >= 1, got {checkpoint_every!r}")
-    md = float(max_derivative)
-    if not (md > 0.0) or math.isnan(md):
-        raise ValueError(f"max_derivative must be positive, got {max_derivative!r}")
-    if events:
+    if isinstance(max_derivative, bool) or not isinstance(max_derivative, (int, float, np.integer, np.floating)) \
+            or not float(max_derivative) > 0.0:
+        raise ValueError(f"max_derivative must be a positive number, got {max_derivative!r}")
+    if events is None or len(events) != 0:
         raise ValueError("events: lifted events are not supported by rollout yet (pass events=())")
     pqd = _check_velocities(particle_qd, model.particle_count, 3, "particle_qd")
     bqd = _check_velocities(body_qd, model.body_count, 6, "body_qd")
@@ -118,7 +118,8 @@ class _Runner:
         self.handler = None
         self.tape = None
         self.states: list[State] = []
-        self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0}
+        self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
+                      "unsettled_active_sets": 0}
 
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
         integ = SemiImplicitIntegrator(self.model, requires_grad=requires_grad)
@@ -203,6 +204,7 @@ class _Runner:
         if self.handler is not None:
             self.stats["failsafe_substeps"] = self.handler.failsafe_count
             self.stats["untaped_substeps"] = self.handler.untaped_substeps
+            self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
             if self.handler._replay is not None:
                 self.stats["largest_system"] = self.handler._replay.largest_system
         return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
@@ -249,6 +251,7 @@ class _RolloutFunction(torch.autograd.Function):
         needs = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
         out = runner.forward(particle_qd if has_particle else None, body_qd if has_body else None, needs)
         ctx.runner = runner
+        ctx.input_devices = (particle_qd.device, body_qd.device)
         ctx.shapes = {k: v.shape for k, v in out.items()}
         return tuple(torch.from_numpy(np.ascontiguousarray(out[k])) for k in ("particle_q", "particle_qd", "body_q", "body_qd"))
 
@@ -261,7 +264,10 @@ class _RolloutFunction(torch.autograd.Function):
             "particle_q": arr(g_q, "particle_q"), "particle_qd": arr(g_qd, "particle_qd"),
             "body_q": arr(g_bq, "body_q"), "body_qd": arr(g_bqd, "body_qd"),
         })
-        return torch.from_numpy(np.ascontiguousarray(gp)), torch.from_numpy(np.ascontiguousarray(gb)), None, None, None
+        # gradients on the inputs' devices (the rollout itself computes on the model's device)
+        gp = torch.from_numpy(np.ascontiguousarray(gp)).to(ctx.input_devices[0])
+        gb = torch.from_numpy(np.ascontiguousarray(gb)).to(ctx.input_devices[1])
+        return gp, gb, None, None, None
 
 
 def rollout(

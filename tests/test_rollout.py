@@ -86,6 +86,12 @@ def _tiny_model():
         ({"body_qd": torch.full((1, 6), float("inf"), dtype=torch.float64)}, "body_qd"),
         ({"events": [("vf", 0, 0)]}, "events"),
         ({"checkpoint_every": 0}, "checkpoint_every"),
+        ({"dt": "0.1"}, "dt"),
+        ({"dt": True}, "dt"),
+        ({"max_derivative": None}, "max_derivative"),
+        ({"max_derivative": "big"}, "max_derivative"),
+        ({"max_derivative": -1.0}, "max_derivative"),
+        ({"events": np.zeros((1, 3))}, "events"),
     ],
 )
 def test_bad_input_raises_value_error_naming_the_argument(kwargs, name):
@@ -265,3 +271,60 @@ def test_readme_example_optimises_a_bounce_to_a_target():
         losses.append(float(loss.detach()))
         assert res.stats["contact_substeps"] >= 1
     assert losses[0] > 0.2 and min(losses) < 1e-4
+
+
+def _box_on_plane(friction, **body):
+    b = ModelBuilder()
+    b.add_rigid_body(*box_mesh(0.1), density=400.0, **body)
+    b.add_ground_plane()
+    b.set_contact(restitution=0.3, friction=friction)
+    return b.finalize()
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_rigid_box_corner_on_ground_plane_matches_finite_differences(friction):
+    """Vertex-plane contacts of a rigid body (the path that replaced falling through planes)."""
+    axis = np.array([1.0, -0.5, 0.2]) / np.linalg.norm([1.0, -0.5, 0.2])
+    model = _box_on_plane(friction, pos=(0.0, 0.0, 0.3), rot=(*(axis * np.sin(0.3)), np.cos(0.3)))
+    qd0 = torch.tensor([[0.4, 0.8, -0.3, 0.3, -0.2, -1.5]], dtype=torch.float64)
+    rows = [(0, c) for c in range(7)]
+    plain = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE}
+    jac, res = _jacobian(model, 10, 4, qd0, "body", rows, **plain)
+    assert res.stats["contact_substeps"] >= 2 and res.stats["failsafe_substeps"] == 0
+    fd = _fd_jacobian(model, 10, 4, qd0, "body", rows, **plain)
+    assert _rel(jac, fd) < GRAD_RTOL
+
+
+def test_checkpointed_backward_with_a_rigid_body_equals_the_full_tape():
+    model = _box_on_plane(0.4, pos=(0.0, 0.0, 0.3), rot=(0.2, 0.1, 0.0, float(np.sqrt(0.95))))
+    qd0 = torch.tensor([[0.4, 0.8, -0.3, 0.3, -0.2, -1.5]], dtype=torch.float64)
+    grads = []
+    for every in (None, 4):
+        w = qd0.clone().requires_grad_()
+        res = rollout(model, 14, DT, 4, body_qd=w, checkpoint_every=every)
+        (res.body_q[-1, 0].sum() + res.body_qd[6, 0, 1]).backward()
+        grads.append(w.grad.numpy().copy())
+    assert res.stats["contact_substeps"] >= 2
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_sliding_box_decelerates_at_mu_g(differentiable):
+    """Closed-form Coulomb friction: a box sliding flat on a plane slows at mu g until it stops
+    (four corner contacts share the load; the friction of each is its own mu j_n)."""
+    from collision.response import ImpulseCollisionHandler
+    from sim.integrator import SemiImplicitIntegrator
+
+    mu, g, v0 = 0.5, 9.81, 2.0
+    model = _box_on_plane(mu, pos=(0.0, 0.0, 0.1), velocity=(v0, 0.0, 0.0))
+    integ = SemiImplicitIntegrator(model)
+    integ.collision_handler = ImpulseCollisionHandler(model, differentiable=differentiable)
+    s = model.state()
+    steps = 18  # 0.3 s, stops after v0 / (mu g) = 0.41 s
+    for _ in range(steps):
+        s_next = model.state()
+        integ.step(s, s_next, DT, 8)
+        s = s_next
+    v = s.body_qd.numpy()[0, 3]
+    expected = v0 - mu * g * steps * DT
+    assert abs(v - expected) < 0.03 * (v0 - expected), (v, expected)
