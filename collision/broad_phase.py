@@ -54,7 +54,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.roots import _init
+from collision.roots import init_warp
 from kernels import broad_phase as _k
 
 __all__ = ["PAD_ABS", "PAD_REL", "BroadPhase", "candidate_pairs", "mesh_edges"]
@@ -202,7 +202,7 @@ class BroadPhase:
         device=None,
         rebuild_every: int = 16,
     ):
-        _init()
+        init_warp()
         nv = int(num_vertices)
         if nv < 0 or nv > _INT32_MAX:
             raise ValueError(f"num_vertices: expected 0 <= num_vertices <= {_INT32_MAX}, got {num_vertices}")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.roots import DEFAULT_MAX_DERIVATIVE, _init
+from collision.roots import DEFAULT_MAX_DERIVATIVE, init_warp
 from kernels import ccd as _k
 
 __all__ = ["MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
@@ -56,11 +56,24 @@ def _stack(args, names) -> np.ndarray:
     return np.ascontiguousarray(np.stack(arrays, axis=1))
 
 
-def _run(kind: int, queries: np.ndarray, thickness: float):
+def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0):
+    """Batched narrow phase on stacked queries.
+
+    Args:
+        kind: 0 vertex-face, 1 edge-edge.
+        queries: (N, 8, 3) float64: the four points at the start (rows 0-3, ipctk's order) and at
+            the end (rows 4-7) of the step.
+        thickness: minimum separation [m] (>= 0).
+
+    Returns:
+        (hit: bool (N,), toi: float64 (N,) fraction of the step, inf where no hit, source: int32
+        (N,) where the time came from: 0 start, 1-3 cubic root slot, 4 collinear, 5 advancement,
+        -1 none).
+    """
     t = float(thickness)
     if not np.isfinite(t) or t < 0.0:
         raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
-    _init()
+    init_warp()
     n = queries.shape[0]
     hit = np.zeros(n, dtype=np.int32)
     toi = np.full(n, np.inf)
@@ -96,7 +109,7 @@ def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thi
         ValueError: wrong shapes, mismatched lengths, non-finite positions or a bad thickness.
     """
     queries = _stack((p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1), _VF_NAMES)
-    hit, toi, _ = _run(0, queries, thickness)
+    hit, toi, _ = narrow_phase(0, queries, thickness)
     return hit, toi
 
 
@@ -112,13 +125,13 @@ def edge_edge_ccd(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1
         (hit: bool (N,), toi: float64 (N,) in [0, 1], ``inf`` where no hit).
     """
     queries = _stack((ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1), _EE_NAMES)
-    hit, toi, _ = _run(1, queries, thickness)
+    hit, toi, _ = narrow_phase(1, queries, thickness)
     return hit, toi
 
 
 def _roots(kind: int, queries: np.ndarray, max_derivative: float):
-    _init()
-    hit, toi, source = _run(kind, queries, 0.0)
+    init_warp()
+    hit, toi, source = narrow_phase(kind, queries, 0.0)
     n = queries.shape[0]
     roots = np.zeros((n, 6))
     out_toi = np.zeros(n)
@@ -227,6 +240,6 @@ def mesh_ccd(x0, x1, faces, edges=None, *, thickness: float = 0.0, broad_phase=N
     ee_idx = np.column_stack([edge_arr[ee[:, 0]], edge_arr[ee[:, 1]]]) if len(ee) else np.zeros((0, 4), dtype=np.int64)
     vf_q = np.ascontiguousarray(np.concatenate([x0[vf_idx], x1[vf_idx]], axis=1))
     ee_q = np.ascontiguousarray(np.concatenate([x0[ee_idx], x1[ee_idx]], axis=1))
-    vf_hit, vf_toi, _ = _run(0, vf_q, thickness)
-    ee_hit, ee_toi, _ = _run(1, ee_q, thickness)
+    vf_hit, vf_toi, _ = narrow_phase(0, vf_q, thickness)
+    ee_hit, ee_toi, _ = narrow_phase(1, ee_q, thickness)
     return MeshCCDResult(vf, vf_hit, vf_toi, ee, ee_hit, ee_toi, edge_arr)

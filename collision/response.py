@@ -49,7 +49,7 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase, mesh_edges
-from collision.ccd import _run as _narrow_phase
+from collision.ccd import narrow_phase
 from collision.replay import ContactReplay, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
@@ -360,8 +360,8 @@ class ImpulseCollisionHandler:
             pair = np.concatenate([vf, ee])
             idx = self._pair_vertices(kind, pair)
             queries = np.ascontiguousarray(np.concatenate([x0[idx], x1[idx]], axis=1))
-            hit_vf, toi_vf, src_vf = _narrow_phase(0, queries[kind == 0], 0.0)
-            hit_ee, toi_ee, src_ee = _narrow_phase(1, queries[kind == 1], 0.0)
+            hit_vf, toi_vf, src_vf = narrow_phase(0, queries[kind == 0], 0.0)
+            hit_ee, toi_ee, src_ee = narrow_phase(1, queries[kind == 1], 0.0)
             hit = np.concatenate([hit_vf, hit_ee])
             kinds.append(kind[hit])
             pairs.append(pair[hit])

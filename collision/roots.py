@@ -36,7 +36,9 @@ _DEVICE = "cpu"
 _initialised = False
 
 
-def _init() -> None:
+def init_warp() -> None:
+    """The project's one Warp initialisation: ``wp.init()`` once, with Warp's start-up banner kept
+    off stdout (scene CLIs print exactly one JSON line there). Safe to call repeatedly."""
     global _initialised
     if not _initialised:
         # keep Warp's banner off stdout: scene CLIs print exactly one JSON line there
@@ -76,7 +78,7 @@ def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs:
 
     On the CPU the numpy buffers are shared with Warp (no copies in or out).
     """
-    _init()
+    init_warp()
     flat = np.ascontiguousarray(coefficients.reshape(-1, coefficients.shape[-1]))
     count = flat.shape[0]
     results = [np.empty((count,) + tuple(dtype._shape_), dtype=np.float64) for dtype in outputs]

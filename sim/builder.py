@@ -879,9 +879,9 @@ class ModelBuilder:
         Returns:
             The model.
         """
-        from collision.roots import _init  # the project's shared, quiet wp.init()
+        from collision.roots import init_warp  # the project's shared, quiet wp.init()
 
-        _init()
+        init_warp()
 
         def cat(chunks, shape, dtype=np.float64):
             return np.concatenate(chunks).astype(dtype) if chunks else np.zeros(shape, dtype=dtype)

@@ -176,9 +176,9 @@ def _winding_and_distance(
     x: np.ndarray, query_point: np.ndarray, query_solid: np.ndarray, faces: np.ndarray, face_start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Runs :func:`_k.winding_distance_kernel` on the CPU; returns (winding, distance) numpy."""
-    from collision.roots import _init
+    from collision.roots import init_warp
 
-    _init()
+    init_warp()
     n = len(query_point)
     dev = "cpu"
     xa = wp.array(np.ascontiguousarray(x), dtype=wp.vec3d, device=dev)

@@ -164,10 +164,10 @@ def _transversal_queries(n, seed):
 
 
 def test_time_of_impact_matches_exact_root_and_its_gradient_matches_finite_differences():
-    from collision.ccd import _run
+    from collision.ccd import narrow_phase
 
     queries = _transversal_queries(4, seed=1)
-    hit, toi, source = _run(0, queries, 0.0)
+    hit, toi, source = narrow_phase(0, queries, 0.0)
     assert hit.all() and np.all((source >= 1) & (source <= 3))
     toi_tape, grad = _tape_toi_gradient(queries, source, toi)
     np.testing.assert_array_equal(toi_tape, toi)
@@ -198,11 +198,11 @@ def _grazing_query(gap):
 
 
 def test_grazing_contact_is_detected_and_its_gradient_is_finite_and_bounded():
-    from collision.ccd import _run
+    from collision.ccd import narrow_phase
 
     gaps = [0.0, -1e-12, -1e-8, -1e-4, 1e-4, 1e-2]
     queries = np.array([_grazing_query(g) for g in gaps])
-    hit, toi, source = _run(0, queries, 0.0)
+    hit, toi, source = narrow_phase(0, queries, 0.0)
     assert hit[:4].all(), "touching and crossing grazes are hits"
     assert not hit[4:].any(), "clear misses (gap >= 1e-4) are not"
     assert abs(toi[0] - 0.5) <= 1e-7  # double root: accuracy ~ sqrt(u)
@@ -228,7 +228,7 @@ def test_lifted_roots_gradient_matches_finite_differences_for_a_miss():
     """A vertex that misses: the coplanarity roots it would need are complex; under a tape their
     derivative w.r.t. the positions is the mollified implicit one, here (well-separated roots,
     clamp inactive) equal to 50-digit finite differences of the exact roots."""
-    from collision.ccd import _run
+    from collision.ccd import narrow_phase
 
     from collision.ccd import point_triangle_roots as roots_of
 
@@ -239,7 +239,7 @@ def test_lifted_roots_gradient_matches_finite_differences_for_a_miss():
         if np.all(np.abs(z) < 10) and np.abs(z.imag).max() > 0.1:
             break
     queries = x[None]
-    hit, toi, source = _run(0, queries, 0.0)
+    hit, toi, source = narrow_phase(0, queries, 0.0)
     q = wp.array(queries, dtype=kccd.mat83d, requires_grad=True)
     out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
     roots = wp.zeros(1, dtype=kccd.vec6d, requires_grad=True)
