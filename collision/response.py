@@ -43,6 +43,7 @@ taped for particle-plane contacts (:mod:`kernels.integrate`); this mesh response
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 
 import numpy as np
@@ -50,7 +51,7 @@ import warp as wp
 
 from collision.broad_phase import BroadPhase, mesh_edges
 from collision.ccd import narrow_phase
-from collision.replay import ContactReplay, paused_tape
+from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
 from sim.model import Model, State
@@ -751,10 +752,13 @@ class ImpulseCollisionHandler:
                 self._solve(cs, vp, bv, r0, inv_inertia_w)
             mobile = ((cs.w != 0) & mobile_type[cs.idx]).any(axis=1)
             active = (cs.jn > 0) & mobile
+            taped = active.copy()  # the set whose solve the tape holds (the first trial's)
+            tape = active_tape()
             for iteration in range(ACTIVE_SET_ITERATIONS):
                 share = self._friction_share(cs, active) if mu > 0 else None
-                # trial solves stay off the tape (their O(n^2) matrices would be kept to the end)
-                with paused_tape() as tape:
+                # the first trial is recorded (usually it is the final one); repair trials stay off
+                # the tape (their O(n^2) matrices would be kept to the end)
+                with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
                     vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
                 jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
                 vrel = np.einsum("ck,ckd->cd", cs.w, self._vertex_velocities(
@@ -771,7 +775,7 @@ class ImpulseCollisionHandler:
                     break  # the last trial's set stands, taped or not: one forward function
                 active = new
                 self.active_set_repairs += 1
-            if tape is not None:
+            if tape is not None and not np.array_equal(taped, active):
                 # the replay of the final active set, recorded
                 share = self._friction_share(cs, active) if mu > 0 else None
                 vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
