@@ -95,15 +95,24 @@ def sweep(offsets=DEFAULT_OFFSETS, bisections: int = 50) -> dict[str, Any]:
             "contacts": np.asarray(contacts)}
 
 
+def _points(text: str) -> int:
+    """argparse type: an integer >= 2 (a sweep needs two aims)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be >= 2, got {value}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--points", type=int, default=len(DEFAULT_OFFSETS),
+    parser.add_argument("--points", type=_points, default=len(DEFAULT_OFFSETS),
                         help="aims in the sweep, log-spaced offsets 1e-1 .. 6.3e-3 (default %(default)s)")
 
 
 def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     """Runs the sweep, logs ``/metrics/gradient/{mollified,unmollified,free_flight}`` per aim."""
-    if args.points < 2:
-        raise ValueError(f"--points must be >= 2, got {args.points}")
     result = sweep(np.logspace(-1.0, -2.2, args.points))
     n = len(result["offsets"])
     frames = {"aim": np.arange(n)}

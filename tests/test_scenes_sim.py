@@ -217,3 +217,12 @@ def test_grazing_scene_cli(tmp_path):
 
     entities = {chunk.entity_path for chunk in RrdReader(out).stream().to_chunks()}
     assert "/metrics/gradient/mollified" in entities and "/metrics/gradient/unmollified" in entities
+
+
+def test_grazing_scene_rejects_a_one_point_sweep(tmp_path):
+    out = tmp_path / "g.rrd"
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run([sys.executable, "-m", "scenes", "grazing", "--out", str(out), "--points", "1"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "--points" in proc.stderr
+    assert not out.exists()
