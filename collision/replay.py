@@ -95,7 +95,6 @@ class ContactReplay:
         self._empty_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
         self._empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self._empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
-        self.solves = 0
         self.largest_system = 0
 
     # ------------------------------------------------------------------ helpers
@@ -206,8 +205,6 @@ class ContactReplay:
         c = len(kinds)
         pairs_w = self._ints(pairs, wp.vec4i)
         kinds_w = self._ints(kinds)
-        vm_p_ = self._or(vm_p, self._empty_vec)
-        vm_b_ = self._or(vm_b, self._empty_twist)
         sides = (wp.zeros(c, dtype=wp.vec2i, device=self.device), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
                  self._zeros(c, wp.vec3d))
         wp.launch(K.contact_sides_kernel, dim=c,
@@ -220,7 +217,6 @@ class ContactReplay:
         masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
         if not n_u:
             return vm_p, vm_b, self._zeros(c, wp.vec3d)
-        self.solves += 1
         self.largest_system = max(self.largest_system, n_u)
         uc = self._ints(unknowns)
         cu = self._ints(contact_unknown)

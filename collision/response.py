@@ -236,6 +236,11 @@ class ImpulseCollisionHandler:
                 static=np.array(static, dtype=bool), device="cpu",
             )
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
+        # vertices an impulse can move: rigid ones and unpinned particles
+        inv_mass = np.zeros(len(self.vertex_type))
+        is_particle = self.vertex_type == _PARTICLE
+        inv_mass[is_particle] = self.particle_inv_mass[self.vertex_owner[is_particle]]
+        self._mobile_vertex = (self.vertex_type == _BODY) | (inv_mass > 0)
         self.n_bodies = int(m.body_count) if self.n_shape else 0
         self.body_inv_mass = np.zeros(0)
         self._body_mass = np.zeros(0)
@@ -403,6 +408,31 @@ class ImpulseCollisionHandler:
             vel[b] = bv[body, 3:6] + np.cross(bv[body, :3], r0[idx[b] - self.shape_offset])
         return vel
 
+    def _velocities_at(self, idx, toi, t_p, t_b, before, after, r0):
+        """(C, 4, 3) vertex velocities at each contact's time ``toi`` [s]: the ``before``
+        (particle, body) velocities (``v-``) while it precedes its owner's earliest contact time
+        (``t_p``, ``t_b``), the ``after`` ones from then on."""
+        v_before = self._vertex_velocities(idx, *before, r0)
+        v_after = self._vertex_velocities(idx, *after, r0)
+        t = self.vertex_type[idx]
+        o = self.vertex_owner[idx]
+        owner_t = np.full(idx.shape, np.inf)
+        p = t == _PARTICLE
+        owner_t[p] = t_p[o[p]]
+        b = t == _BODY
+        owner_t[b] = t_b[o[b]]
+        return np.where((toi[:, None] < owner_t)[..., None], v_before, v_after)
+
+    def _approach(self, idx, w, n, vel, x0, x1, h):
+        """Normal relative velocities (C,) at the contacts and whether each CCD hit approaches:
+        by its velocities at ``t*`` or along the straight paths ``x0 -> x1`` checked by CCD (their
+        mean velocity over the substep decides whether the primitives pass through)."""
+        vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
+        vn_path = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h), n)
+        # below -APPROACH_EPS relative: rounding of an exactly separating pair is not an approach
+        eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
+        return vn, (vn < -eps) | (vn_path < -eps)
+
     def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
         updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
@@ -528,20 +558,6 @@ class ImpulseCollisionHandler:
             t_b[zb] = 0.0
             return x1p, bq1, t_p, t_b
 
-        def velocities_at(idx, toi, t_p, t_b):
-            """(C, 4, 3) vertex velocities at each contact's time: v- before the owner's t*, v+ after."""
-            before = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
-            after = self._vertex_velocities(idx, vp, bv, r0)
-            t = self.vertex_type[idx]
-            o = self.vertex_owner[idx]
-            owner_t = np.full(idx.shape, np.inf)
-            p = t == _PARTICLE
-            owner_t[p] = t_p[o[p]]
-            b = t == _BODY
-            owner_t[b] = t_b[o[b]]
-            use_before = toi[:, None] < owner_t
-            return np.where(use_before[..., None], before, after)
-
         # 1. proximity contacts at the start of the substep
         vf, ee = self.broad_phase.query(x0[:-1], x0[:-1], delta)
         if len(vf) + len(ee):
@@ -609,16 +625,8 @@ class ImpulseCollisionHandler:
             if on_plane.any():
                 w[on_plane] = [1.0, 0.0, 0.0, 0.0]
                 n[on_plane] = self.planes[pair[on_plane, 1], :3]
-            vel = velocities_at(idx, toi * h, t_p, t_b)
-            vrel = np.einsum("ck,ckd->cd", w, vel)
-            vn = np.einsum("cd,cd->c", vrel, n)
-            # CCD checks the straight paths x0 -> x1; along them the primitives move with the
-            # mean velocity of the substep, which is what decides whether they pass through
-            v_path = np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h)
-            vn_path = np.einsum("cd,cd->c", v_path, n)
-            # below -APPROACH_EPS relative: rounding of an exactly separating pair is not an approach
-            eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
-            approaching = (vn < -eps) | (vn_path < -eps)
+            vel = self._velocities_at(idx, toi * h, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
+            vn, approaching = self._approach(idx, w, n, vel, x0, x1, h)
             if not approaching.any():
                 break
             if iteration >= self.max_iterations:
@@ -689,10 +697,6 @@ class ImpulseCollisionHandler:
         cs = _Contacts()
         st = {"dev": None, "vp": vm_p, "vb": vm_b, "zone": False}
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
-        mobile_type = (self.vertex_type == _BODY) | (
-            (self.vertex_type == _PARTICLE) & (np.append(self.particle_inv_mass, 0.0)[np.minimum(self.vertex_owner, max(P, 1) - 1) if P else 0] > 0)
-            if P else np.zeros(len(self.vertex_type), dtype=bool))
-
         def owners():
             t_p, t_b = self._owner_times(cs, P, B)
             po = np.full(P, -1, dtype=np.int64)
@@ -702,11 +706,12 @@ class ImpulseCollisionHandler:
                 toi = np.repeat(cs.toi, 4)
                 t = self.vertex_type[cs.idx].ravel()
                 o = self.vertex_owner[cs.idx].ravel()
+                # the contact whose time is the owner's earliest (ties: same t*, any of them)
                 p = (t == _PARTICLE) & (cs.w.ravel() != 0)
-                p &= toi == np.where(p, t_p[np.where(p, o, 0)] if P else np.inf, np.inf)
+                p[p] = toi[p] == t_p[o[p]]
                 po[o[p]] = rows[p]
                 b = t == _BODY
-                b &= toi == np.where(b, t_b[np.where(b, o, 0)] if B else np.inf, np.inf)
+                b[b] = toi[b] == t_b[o[b]]
                 bo[o[b]] = rows[b]
             po[zones.particles] = -2
             bo[zones.bodies] = -2
@@ -718,18 +723,6 @@ class ImpulseCollisionHandler:
             X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], bq0_w,
                                    state_pred.body_q if B else None, vm_b, st["vb"], po, bo, toi, h)
             return X1p, BQ1, t_p, t_b
-
-        def velocities_at(idx, toi, t_p, t_b):
-            before = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
-            after = self._vertex_velocities(idx, vp, bv, r0)
-            t = self.vertex_type[idx]
-            o = self.vertex_owner[idx]
-            owner_t = np.full(idx.shape, np.inf)
-            p = t == _PARTICLE
-            owner_t[p] = t_p[o[p]]
-            b = t == _BODY
-            owner_t[b] = t_b[o[b]]
-            return np.where((toi[:, None] < owner_t)[..., None], before, after)
 
         def geometry(kind, pair, idx, frac, source, X1, t_p, t_b):
             rows = {"pairs": idx, "kinds": kind, "sources": source, "detected": frac,
@@ -750,7 +743,7 @@ class ImpulseCollisionHandler:
             # solve and repair the set (drop pulling contacts, add violated ones) until it holds
             with paused_tape():
                 self._solve(cs, vp, bv, r0, inv_inertia_w)
-            mobile = ((cs.w != 0) & mobile_type[cs.idx]).any(axis=1)
+            mobile = ((cs.w != 0) & self._mobile_vertex[cs.idx]).any(axis=1)
             active = (cs.jn > 0) & mobile
             taped = active.copy()  # the set whose solve the tape holds (the first trial's)
             tape = active_tape()
@@ -829,11 +822,8 @@ class ImpulseCollisionHandler:
             source = np.where(np.isin(source, (1, 2, 3, 6)), source, 4)
             out, host = geometry(kind, pair, idx, frac, source, X1, t_p, t_b)
             toi, w, n, _ = host
-            vel = velocities_at(idx, toi, t_p, t_b)
-            vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
-            vn_path = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h), n)
-            eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
-            approaching = (vn < -eps) | (vn_path < -eps)
+            vel = self._velocities_at(idx, toi, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
+            _, approaching = self._approach(idx, w, n, vel, x0, x1, h)
             if not approaching.any():
                 break
             if iteration >= self.max_iterations:

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from scenes.registry import int_at_least
+
 NAME = "grazing"
 DESCRIPTION = "Gradient of a particle passing a spinning box across a grazing contact (mollified vs -1/p')"
 PRECISIONS = ("float64",)
@@ -95,19 +97,8 @@ def sweep(offsets=DEFAULT_OFFSETS, bisections: int = 50) -> dict[str, Any]:
             "contacts": np.asarray(contacts)}
 
 
-def _points(text: str) -> int:
-    """argparse type: an integer >= 2 (a sweep needs two aims)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"must be >= 2, got {value}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--points", type=_points, default=len(DEFAULT_OFFSETS),
+    parser.add_argument("--points", type=int_at_least(2), default=len(DEFAULT_OFFSETS),
                         help="aims in the sweep, log-spaced offsets 1e-1 .. 6.3e-3 (default %(default)s)")
 
 

@@ -63,15 +63,23 @@ def describe(name: str) -> str:
     return getattr(load_scene(name), "DESCRIPTION", "")
 
 
-def positive_int(text: str) -> int:
-    """``argparse`` type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer (>= 1), got {value}")
-    return value
+def int_at_least(minimum: int, what: str = "an integer"):
+    """``argparse`` type factory: an integer >= ``minimum`` (``what`` names it in messages)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be {what} (>= {minimum}), got {value}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1, "a positive integer")
+"""``argparse`` type: an integer >= 1."""
 
 
 def positive_float(text: str) -> float:

@@ -328,3 +328,39 @@ def test_sliding_box_decelerates_at_mu_g(differentiable):
     v = s.body_qd.numpy()[0, 3]
     expected = v0 - mu * g * steps * DT
     assert abs(v - expected) < 0.03 * (v0 - expected), (v, expected)
+
+
+def test_tape_holds_the_replay_only_no_decisions_or_iterative_solves():
+    """Decide, then replay: after taped substeps with contacts (rigid box on a static box and a
+    plane, friction), the tape holds the smooth map (roots, geometry, Delassus matrix, impulses,
+    integration) and the implicit adjoint of the solve, never the narrow phase, the Gauss-Seidel
+    sweeps or the LU iterations."""
+    import warp as wp
+
+    from collision.response import ImpulseCollisionHandler
+    from sim.integrator import SemiImplicitIntegrator
+
+    axis = np.array([1.0, 1.0, 0.3]) / np.linalg.norm([1.0, 1.0, 0.3])
+    b = ModelBuilder()
+    b.add_rigid_body(*box_mesh(0.1), density=400.0, pos=(0.02, -0.03, 0.32), rot=(*(axis * np.sin(0.25)), np.cos(0.25)),
+                     velocity=(0.2, 0.1, -2.0), angular_velocity=(0.5, -1.0, 0.3))
+    b.add_static_mesh(*box_mesh((0.4, 0.4, 0.1)))
+    b.set_contact(restitution=0.3, friction=0.4)
+    model = b.finalize()
+    integ = SemiImplicitIntegrator(model, requires_grad=True)
+    handler = ImpulseCollisionHandler(model, differentiable=True)
+    integ.collision_handler = handler
+    tape = wp.Tape()
+    s = model.state(requires_grad=True)
+    with tape:
+        for _ in range(8):
+            s_next = model.state(requires_grad=True)
+            integ.step(s, s_next, DT, 4)
+            s = s_next
+    kernels = {launch[0].key for launch in tape.launches if not callable(launch)}
+    assert {"contact_geometry_kernel", "delassus_kernel", "contact_rhs_kernel", "friction_impulses_kernel",
+            "time_of_impact_bodies_kernel"} <= kernels
+    # the solve's implicit adjoint (a transposed solve), recorded as a function
+    assert any(callable(launch) and "_dense_solve" in getattr(launch, "__qualname__", "") for launch in tape.launches)
+    for decision in ("ccd_kernel", "solve_contacts_kernel", "dense_solve_kernel", "contact_offsets_kernel"):
+        assert decision not in kernels
