@@ -101,15 +101,19 @@ class _Contacts:
         self.toi = np.zeros(0)  # time of impact in the substep [s]
         self.target = np.zeros(0)  # minimum normal relative velocity after the impulse [m/s]
         self.edge_edge = np.zeros(0, dtype=bool)
+        # the time comes from a root or a plane crossing, so the replay differentiates it (not a
+        # constant: proximity, collinear or advancement detections)
+        self.timed = np.zeros(0, dtype=bool)
         self.jn = np.zeros(0)  # accumulated normal impulse [N s]
         self.jt = np.zeros((0, 3))  # accumulated friction impulse [N s]
 
     def __len__(self) -> int:
         return len(self.toi)
 
-    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target):
+    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None):
         """Adds contacts (a pair already present takes the new normal, weights and target, and
-        the earlier of the two times).
+        the earlier of the two times). ``timed`` (C,) bool: the time is differentiated by the
+        replay (default: none is).
 
         Returns:
             (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
@@ -121,6 +125,7 @@ class _Contacts:
         keep_toi = np.zeros(before, dtype=np.int64)
         keep_target = np.zeros(before, dtype=np.int64)
         new_rows = []
+        timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
         for c in range(len(pair)):
             key = (int(kind[c]), int(pair[c, 0]), int(pair[c, 1]))
             row = self.keys.get(key)
@@ -132,6 +137,8 @@ class _Contacts:
                 new_index[row] = c
                 keep_toi[row] = int(self.toi[row] <= toi[c])
                 keep_target[row] = int(self.target[row] >= target[c])
+                if not keep_toi[row]:
+                    self.timed[row] = timed[c]
                 self.toi[row] = min(self.toi[row], toi[c])
                 self.target[row] = max(self.target[row], target[c])
         if new_rows:
@@ -143,6 +150,7 @@ class _Contacts:
             self.toi = np.concatenate([self.toi, toi[r]])
             self.target = np.concatenate([self.target, target[r]])
             self.edge_edge = np.concatenate([self.edge_edge, kind[r] == 1])
+            self.timed = np.concatenate([self.timed, timed[r]])
             self.jn = np.concatenate([self.jn, np.zeros(len(r))])
             self.jt = np.concatenate([self.jt, np.zeros((len(r), 3))])
             new_index = np.concatenate([new_index, r])
@@ -706,8 +714,12 @@ class ImpulseCollisionHandler:
                 toi = np.repeat(cs.toi, 4)
                 t = self.vertex_type[cs.idx].ravel()
                 o = self.vertex_owner[cs.idx].ravel()
-                # the contact whose time is the owner's earliest (ties: same t*, any of them)
-                p = (t == _PARTICLE) & (cs.w.ravel() != 0)
+                # the contact whose time is the owner's earliest; among ties (same t*: a corner
+                # on a face diagonal is several pairs) one whose time the replay differentiates,
+                # written last so it wins
+                order = np.argsort(np.repeat(cs.timed, 4), kind="stable")
+                rows, toi, t, o = rows[order], toi[order], t[order], o[order]
+                p = (t == _PARTICLE) & (cs.w.ravel()[order] != 0)
                 p[p] = toi[p] == t_p[o[p]]
                 po[o[p]] = rows[p]
                 b = t == _BODY
@@ -731,9 +743,10 @@ class ImpulseCollisionHandler:
                              SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative)
             return out, [a.numpy()[: len(kind)] for a in out]
 
-        def add(sel, out, host, kind, pair, idx):
+        def add(sel, out, host, kind, pair, idx, source):
             toi_h, w_h, n_h, tg_h = host
-            new_index, keep_toi, keep_tg = cs.add(kind[sel], pair[sel], idx[sel], w_h[sel], n_h[sel], toi_h[sel], tg_h[sel])
+            new_index, keep_toi, keep_tg = cs.add(kind[sel], pair[sel], idx[sel], w_h[sel], n_h[sel], toi_h[sel],
+                                                  tg_h[sel], np.isin(source[sel], (1, 2, 3, 6)))
             pos = np.flatnonzero(sel)
             full = np.where(new_index >= 0, pos[np.maximum(new_index, 0)], -1)
             st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2]), full, keep_toi, keep_tg)
@@ -804,7 +817,7 @@ class ImpulseCollisionHandler:
         if len(kind):
             zero = np.zeros(len(kind))
             out, host = geometry(kind, pair, idx, zero, np.zeros(len(kind), dtype=np.int64), X0, inf_p, inf_b)
-            add(np.ones(len(kind), dtype=bool), out, host, kind, pair, idx)
+            add(np.ones(len(kind), dtype=bool), out, host, kind, pair, idx, np.zeros(len(kind), dtype=np.int64))
             exact()
 
         # 2-5. CCD rounds on the planned motion
@@ -838,7 +851,7 @@ class ImpulseCollisionHandler:
                                                               vp, bv)
                 st["zone"] = True
                 continue
-            add(approaching, out, host, kind, pair, idx)
+            add(approaching, out, host, kind, pair, idx, source)
             exact()
         if failsafe:
             self.failsafe_count += 1

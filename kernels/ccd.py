@@ -35,6 +35,7 @@ from kernels.ccd_common import (
     UNIT_ROUNDOFF,
     collinearity_quadratics,
     coplanarity_cubic,
+    unit_scaled_cubic,
     lerp3,
     max_abs_vec3,
     root_time_uncertainty,
@@ -328,7 +329,7 @@ def ccd_time_of_impact_kernel(
     ``roots`` holds all three roots for every query (the lifted event an optimiser can aim at).
     """
     i = wp.tid()
-    r = cubic_roots(query_coefficients(queries[i]), CCD_T_MAX, max_derivative)
+    r = cubic_roots(unit_scaled_cubic(query_coefficients(queries[i])), CCD_T_MAX, max_derivative)
     roots[i] = r
     s = source[i]
     if s >= 1 and s <= 3:

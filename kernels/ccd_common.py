@@ -53,6 +53,24 @@ def coplanarity_cubic(
 
 
 @wp.func
+def unit_scaled_cubic(p: wp.vec4d) -> wp.vec4d:
+    """``p / max|p_k|`` (``p`` itself when all are zero): the same roots with the largest
+    coefficient of magnitude 1.
+
+    The coplanarity cubic has units of volume, so its raw size depends on the scene's scale; the
+    robust division bound ``M`` of the mollified derivative (the paper's eq. ``dpboundeddp``
+    scales only coefficients *above* 1) would then clamp the derivative of perfectly transversal
+    contacts of small primitives (a 2 cm particle step on a 20 cm face: ``|p'(t*)| = 6e-4 <
+    1/M``). Scaling to unit size makes ``M`` a unit-free bound on ``1/|p'(t*)|`` relative to
+    the cubic's own size, which is what "near-tangential" means.
+    """
+    m = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.max(wp.abs(p[2]), wp.abs(p[3])))
+    if m > wp.float64(0.0):
+        return p / m
+    return p
+
+
+@wp.func
 def lerp3(x0: wp.vec3d, x1: wp.vec3d, t: wp.float64) -> wp.vec3d:
     return x0 + t * (x1 - x0)
 

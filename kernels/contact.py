@@ -9,7 +9,7 @@ the distance.
 
 import warp as wp
 
-from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic
+from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
 from kernels.roots import cubic_roots
@@ -331,7 +331,7 @@ def contact_geometry_kernel(
     b3 = x1[q[3]]
     frac = zero
     if src >= 1 and src <= 3:
-        r = cubic_roots(coplanarity_cubic(a0, a1, a2, a3, b0, b1, b2, b3), CCD_T_MAX, max_derivative)
+        r = cubic_roots(unit_scaled_cubic(coplanarity_cubic(a0, a1, a2, a3, b0, b1, b2, b3)), CCD_T_MAX, max_derivative)
         frac = wp.clamp(r[2 * (src - 1)], zero, one)
     elif src == TIME_PLANE:
         p = planes[plane_ids[c]]

@@ -53,7 +53,7 @@ def build_model():
     return b.finalize()
 
 
-def sweep(offsets=DEFAULT_OFFSETS, bisections: int = 50) -> dict[str, Any]:
+def sweep(offsets=DEFAULT_OFFSETS, bisections: int = 50, max_derivative: float = 1000.0) -> dict[str, Any]:
     """Runs the sweep (see the module docstring).
 
     Returns:
@@ -88,7 +88,7 @@ def sweep(offsets=DEFAULT_OFFSETS, bisections: int = 50) -> dict[str, Any]:
     free, _ = run(miss + 0.01, grad=True)
     mollified, unmollified, contacts = [], [], []
     for k in offsets:
-        g, c = run(hit * (1.0 + k), grad=True)
+        g, c = run(hit * (1.0 + k), max_derivative, grad=True)
         mollified.append(g)
         contacts.append(c)
         unmollified.append(run(hit * (1.0 + k), UNMOLLIFIED_MAX_DERIVATIVE, grad=True)[0])

@@ -231,12 +231,17 @@ def test_checkpointed_backward_equals_the_full_tape():
 # ------------------------------------------------------------------------------ grazing
 
 
-GRAZING_BOUND = 2.0
-"""Stated bound: across the grazing sweep the mollified gradient stays within this multiple of
-the free-flight gradient (measured: within 1.0x; the unmollified one reaches 13x)."""
+GROWTH = 10.0
+"""Near the hit/miss boundary of the sweep the gradient exceeds this multiple of the free-flight
+gradient (measured: 13x at the offset 6.3e-3)."""
 
 
-def test_grazing_sweep_mollified_bounded_unmollified_blows_up():
+def test_grazing_sweep_gradients_finite_and_equal_to_the_exact_ones():
+    """Across the sweep the root's derivative stays far from the clamp (|dt*/dp| < 10 for the
+    unit-scaled cubic): the mollified gradient is the exact one, finite, and grows near the
+    boundary. The sweep's hit/miss boundary is where the coplanarity point leaves the face
+    (a simple root), not a tangency, so neither gradient blows up there; the bound at a double
+    root is tested on the roots themselves (tests/test_roots_derivatives.py)."""
     from scenes.grazing import sweep
 
     result = sweep()
@@ -244,9 +249,8 @@ def test_grazing_sweep_mollified_bounded_unmollified_blows_up():
     assert abs(free - 12 * DT) < 1e-12  # free flight: d x / d v_x = T
     assert np.all(result["contacts"] > 0)  # every aim of the sweep hits
     assert np.all(np.isfinite(mollified)) and np.all(np.isfinite(plain))
-    assert np.abs(mollified).max() <= GRAZING_BOUND * abs(free)
-    # -1/p'(t*) grows like offset^(-1/2) towards the double root
-    assert np.abs(plain).max() > 10.0 * abs(free)
+    np.testing.assert_allclose(mollified, plain, rtol=1e-10)
+    assert np.abs(plain).max() > GROWTH * abs(free)
     assert abs(plain[-1]) > 2.5 * abs(plain[0])
 
 
