@@ -171,6 +171,85 @@ def edge_edge_roots(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_
     return _roots(1, queries, max_derivative)
 
 
+class _CoplanarityRoots:
+    """torch.autograd.Function (built lazily: torch stays optional for the numpy API)."""
+
+    function = None
+
+    @classmethod
+    def get(cls):
+        if cls.function is None:
+            import torch
+
+            class Function(torch.autograd.Function):
+                @staticmethod
+                def forward(ctx, queries, max_derivative):
+                    init_warp()
+                    n = queries.shape[0]
+                    q = wp.array(queries.detach().cpu().numpy().reshape(n, 8, 3), dtype=_k.mat83d, device=_DEVICE,
+                                 requires_grad=True)
+                    roots = wp.zeros(n, dtype=_k.vec6d, device=_DEVICE, requires_grad=True)
+                    tape = wp.Tape()
+                    with tape:
+                        wp.launch(_k.coplanarity_roots_kernel, dim=n, inputs=[q, wp.float64(max_derivative)],
+                                  outputs=[roots], device=_DEVICE)
+                    ctx.tape, ctx.q, ctx.roots, ctx.device = tape, q, roots, queries.device
+                    return torch.from_numpy(roots.numpy().reshape(n, 3, 2).copy()).to(queries.device)
+
+                @staticmethod
+                def backward(ctx, grad):
+                    n = ctx.q.shape[0]
+                    ctx.roots.grad.assign(wp.array(grad.detach().cpu().numpy().reshape(n, 6).astype(np.float64),
+                                                   dtype=_k.vec6d, device=_DEVICE))
+                    ctx.tape.backward()
+                    out = torch.from_numpy(ctx.q.grad.numpy().reshape(n, 8, 3).copy()).to(ctx.device)
+                    ctx.tape.zero()
+                    return out, None
+
+            cls.function = Function
+        return cls.function
+
+
+def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+    """Torch: the lifted events of vertex-face or edge-edge pairs moving linearly over a step.
+
+    The roots (real or complex) of the coplanarity cubic of the four points' straight paths
+    ``x(s) = x_start + s (x_end - x_start)``, ``s`` the fraction of the step: a hit is a real root
+    in [0, 1] with the point inside the triangle (edges overlapping); a miss has the wanted root
+    complex or outside. Backward is the mollified implicit derivative (:mod:`kernels.roots`,
+    bounded by ``max_derivative`` for the cubic scaled to a largest coefficient of 1), so a loss
+    on a complex root has a finite gradient that pulls it onto the real axis.
+
+    Args:
+        x_start, x_end: torch float64 (N, 4, 3) [m]: vertex, triangle corners (vertex-face) or
+            the two edges' endpoints (edge-edge), at the start and the end of the step.
+        max_derivative: the robust-division bound ``M`` (> 0).
+
+    Returns:
+        torch float64 (N, 3, 2): slots (t-, tM, t+) of design.md, (Re, Im), in fractions of the step.
+
+    Raises:
+        ValueError: not float64 tensors of matching (N, 4, 3) shape, or non-finite positions.
+    """
+    import torch
+
+    for name, x in (("x_start", x_start), ("x_end", x_end)):
+        if not isinstance(x, torch.Tensor) or x.dtype != torch.float64:
+            raise ValueError(f"{name} must be a float64 torch tensor of shape (N, 4, 3)")
+        if x.ndim != 3 or tuple(x.shape[1:]) != (4, 3):
+            raise ValueError(f"{name} must have shape (N, 4, 3), got {tuple(x.shape)}")
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"{name} must be finite (it holds NaN or inf)")
+    if x_start.shape != x_end.shape:
+        raise ValueError(f"x_start and x_end must have the same shape, got {tuple(x_start.shape)} and {tuple(x_end.shape)}")
+    if not float(max_derivative) > 0.0:
+        raise ValueError(f"max_derivative must be positive, got {max_derivative!r}")
+    queries = torch.cat([x_start, x_end], dim=1)
+    if queries.shape[0] == 0:
+        return torch.zeros((0, 3, 2), dtype=torch.float64, device=queries.device)
+    return _CoplanarityRoots.get().apply(queries, float(max_derivative))
+
+
 # ---------------------------------------------------------------------------------------------
 # meshes: broad phase + narrow phase
 # ---------------------------------------------------------------------------------------------

@@ -336,3 +336,16 @@ def ccd_time_of_impact_kernel(
         time_of_impact[i] = wp.clamp(r[(s - 1) + (s - 1)], wp.float64(0.0), wp.float64(1.0))
     else:
         time_of_impact[i] = detected_time[i]
+
+
+@wp.kernel
+def coplanarity_roots_kernel(
+    queries: wp.array(dtype=mat83d),
+    max_derivative: wp.float64,
+    roots: wp.array(dtype=vec6d),
+):
+    """The three roots (fractions of the step; real or complex) of each query's unit-scaled
+    coplanarity cubic: the lifted event of a pair, whatever it hits. Differentiable under a
+    tape (mollified implicit derivative bounded by ``max_derivative``)."""
+    i = wp.tid()
+    roots[i] = cubic_roots(unit_scaled_cubic(query_coefficients(queries[i])), CCD_T_MAX, max_derivative)

@@ -32,6 +32,7 @@ SCENES: dict[str, str] = {
     "rigid_toss": "scenes.rigid_toss",
     "cloth_rigid": "scenes.cloth_rigid",
     "grazing": "scenes.grazing",
+    "tunnel": "scenes.tunnel",
 }
 """Scene name -> module path."""
 

@@ -31,6 +31,7 @@ import warp as wp
 
 from collision.response import ImpulseCollisionHandler
 from collision.roots import DEFAULT_MAX_DERIVATIVE
+from sim.events import check_events, event_outputs
 from sim.integrator import SemiImplicitIntegrator
 from sim.model import Model, State
 
@@ -49,7 +50,10 @@ class RolloutResult:
         particle_qd: velocities [m/s], (N+1, P, 3).
         body_q: poses (centre of mass [m], quaternion x y z w), (N+1, B, 7).
         body_qd: twists (angular [rad/s], linear [m/s]) in world frame, (N+1, B, 6).
-        event_roots: lifted events' roots (E, 3, 2); empty until events are supported.
+        event_roots: the lifted events' roots (E, 3, 2): slots (t-, tM, t+), (Re, Im) [s from
+            the window's start] (:mod:`sim.events`).
+        event_coords: closest-point coordinates at each root's real part (E, 3, 3): barycentric
+            (w1, w2, w3) of the triangle for vertex-face events, (s_a, s_b, 0) for edge-edge.
         stats: counts of the forward pass: ``contact_substeps`` (substeps with a mesh contact),
             ``failsafe_substeps`` (impact zones formed), ``untaped_substeps`` (substeps whose
             impact-zone members' velocities carry no derivative), ``largest_system`` (most unknowns
@@ -62,6 +66,7 @@ class RolloutResult:
     body_q: torch.Tensor
     body_qd: torch.Tensor
     event_roots: torch.Tensor
+    event_coords: torch.Tensor = None
     stats: dict = field(default_factory=dict)
 
 
@@ -98,11 +103,10 @@ def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkp
     if isinstance(max_derivative, bool) or not isinstance(max_derivative, (int, float, np.integer, np.floating)) \
             or not float(max_derivative) > 0.0:
         raise ValueError(f"max_derivative must be a positive number, got {max_derivative!r}")
-    if events is None or len(events) != 0:
-        raise ValueError("events: lifted events are not supported by rollout yet (pass events=())")
+    events = check_events(model, events, int(steps))
     pqd = _check_velocities(particle_qd, model.particle_count, 3, "particle_qd")
     bqd = _check_velocities(body_qd, model.body_count, 6, "body_qd")
-    return int(steps), dt_f, int(substeps), pqd, bqd
+    return int(steps), dt_f, int(substeps), pqd, bqd, events
 
 
 class _Runner:
@@ -294,7 +298,10 @@ def rollout(
         particle_qd: initial particle velocities [m/s], torch float64 (P, 3); None = the model's.
         body_qd: initial body twists (angular [rad/s], linear [m/s]) in world frame, torch
             float64 (B, 6); None = the model's.
-        events: lifted events (not supported yet: must be empty).
+        events: lifted events, a sequence of :class:`sim.events.Event` (designated vertex-face
+            or edge-edge pairs and a window of steps): their roots and closest-point
+            coordinates come back in ``event_roots`` / ``event_coords``, differentiable with the
+            mollified derivative bounded by ``max_derivative``.
         collisions: mesh collisions (cloth, rigid, static, rigid-plane) as the scenes handle them;
             particle-plane contacts are always on.
         max_derivative: the robust-division bound ``M`` of the time-of-impact derivative
@@ -310,14 +317,15 @@ def rollout(
         ValueError: naming the argument, for wrong types, shapes, dtypes, non-finite values,
             ``steps < 1``, ``substeps < 1`` or ``dt <= 0``; before anything runs.
     """
-    steps, dt, substeps, particle_qd, body_qd = _check_args(
+    steps, dt, substeps, particle_qd, body_qd, events = _check_args(
         model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative)
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative))
     has_p, has_b = particle_qd is not None, body_qd is not None
     p_in = particle_qd if has_p else torch.zeros((model.particle_count, 3), dtype=torch.float64)
     b_in = body_qd if has_b else torch.zeros((model.body_count, 6), dtype=torch.float64)
     q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, runner, has_p, has_b)
+    roots, coords = event_outputs(model, events, q, bq, dt, float(max_derivative))
     return RolloutResult(
         particle_q=q, particle_qd=qd, body_q=bq, body_qd=bqd,
-        event_roots=torch.zeros((0, 3, 2), dtype=torch.float64), stats=dict(runner.stats),
+        event_roots=roots, event_coords=coords, stats=dict(runner.stats),
     )
