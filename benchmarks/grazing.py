@@ -3,7 +3,8 @@
     python benchmarks/grazing.py [--points 25] [--out benchmarks/results/grazing.png]
 
 Runs the sweep of the ``grazing`` scene (:mod:`scenes.grazing`: a particle aimed ever closer to
-a tangential contact with a spinning box) and writes a PNG of the gradient of the final x w.r.t.
+the hit/miss boundary of a spinning box's face; that boundary is the face's edge, a simple root,
+so both gradients agree there) and writes a PNG of the gradient of the final x w.r.t.
 the initial v_x across the sweep, mollified (``M = 1000``) and unmollified, with the free-flight
 gradient for scale; prints the table.
 """
@@ -52,9 +53,9 @@ def main(argv=None) -> None:
     ax.semilogx(r["offsets"], r["mollified"], "s-", color="tab:blue", label="mollified (M = 1000)")
     ax.axhline(free, color="gray", ls="--", label="free flight")
     ax.invert_xaxis()
-    ax.set_xlabel("relative aim offset from the grazing contact (hits; right = closer to grazing)")
+    ax.set_xlabel("relative aim offset from the hit/miss boundary (hits; right = closer)")
     ax.set_ylabel(r"$\partial x(T) / \partial v_{x,0}$  [s]")
-    ax.set_title("Particle passing a spinning box: gradient across a grazing contact")
+    ax.set_title("Particle passing a spinning box: gradient towards the hit/miss boundary")
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
