@@ -80,12 +80,16 @@ class Problem:
 
 
 def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False):
+    """(initial velocity tensor, rollout result); ``v`` a (3,) array, or a (1, 3) tensor used as is."""
     import torch
 
     from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
 
     model = problem_or_model.model if isinstance(problem_or_model, Problem) else problem_or_model
-    x = torch.tensor(np.asarray(v, dtype=np.float64)[None], dtype=torch.float64, requires_grad=grad)
+    if isinstance(v, torch.Tensor):
+        x = v
+    else:
+        x = torch.tensor(np.asarray(v, dtype=np.float64)[None], dtype=torch.float64, requires_grad=grad)
     kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
     return x, rollout(model, STEPS, DT, 1, particle_qd=x, events=events, **kw)
 
@@ -116,7 +120,7 @@ def make_problem(seed: int) -> Problem:
     """Draws a problem (see the module docstring); retries inside the seed's stream until the
     aimed velocity hits the designated face once and the start misses with a complex root."""
     from sim.builder import ModelBuilder
-    from sim.events import BranchTracker
+    from sim.events import BranchTracker, event_positions
 
     rng = np.random.default_rng(seed)
     verts, faces = tetrahedron()
@@ -144,8 +148,6 @@ def make_problem(seed: int) -> Problem:
         _, free = _rollout(model, np.zeros(3))
         k = int(t_aim / DT)
         frac = t_aim / DT - k
-        from sim.events import event_positions
-
         ev = _event(face, (k, k + 1))
         xa, xb = event_positions(model, [ev], free.particle_q, free.body_q)
         corners = (xa[0, 1:] + frac * (xb[0, 1:] - xa[0, 1:])).numpy()
@@ -162,23 +164,20 @@ def make_problem(seed: int) -> Problem:
         v_target = res.particle_qd[-1, 0].detach().numpy().copy()
         window = (max(0, k_hit - EVENT_STEPS), k_hit)
         event = _event(face, window)
-        # the wanted root at v*: the real one at t_target
-        _, res_star = _rollout(model, v_star, events=[event])
-        # (the window ends after the bounce at v*: follow the root of the unbounced motion,
-        # which is what the event sees for any miss)
+        # the wanted root: at v* the real one at t_target (the window ends before the hit, so
+        # the event sees free flight there as for any miss)
+        roots_star = _rollout(model, v_star, events=[event])[1].event_roots[0].detach().numpy()
+        tau = t_target - window[0] * DT
+        wanted = int(np.argmin(np.abs(roots_star[:, 0] - tau) + np.abs(roots_star[:, 1])))
         # start: a miss, reached from v* by a growing sideways push
         side = np.cross(v_star, rng.normal(size=3))
         side *= np.linalg.norm(v_star) / np.linalg.norm(side)
         for push in (0.3, 0.45, 0.6, 0.8):
             v0 = v_star + push * side
-            _, r0 = _rollout(model, v0)
-            if r0.stats["contact_substeps"]:
+            if _rollout(model, v0)[1].stats["contact_substeps"]:
                 continue
-            # follow the wanted root from just before the hit (v* nudged to a near-miss) to v0
-            tracker = BranchTracker(2)
-            roots_star = _rollout(model, v_star + 1e-9 * side, events=[event])[1].event_roots[0].detach().numpy()
-            tau = t_target - window[0] * DT
-            tracker.slot = int(np.argmin(np.abs(roots_star[:, 0] - tau) + np.abs(roots_star[:, 1])))
+            # follow the wanted root from v* to v0
+            tracker = BranchTracker(wanted)
             tracker.update(roots_star)
             for s in np.linspace(0.0, 1.0, 41)[1:]:
                 r = _rollout(model, v_star + s * push * side, events=[event])[1].event_roots[0].detach().numpy()
@@ -210,10 +209,7 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     t0 = time.perf_counter()
     for it in range(iters + 1):
         opt.zero_grad()
-        from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
-
-        kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
-        res = rollout(problem.model, STEPS, DT, 1, particle_qd=v, events=[event], **kw)
+        _, res = _rollout(problem, v, events=[event], unmollified=unmollified)
         t_hit, _ = hit_time(res)
         v_final = res.particle_qd[-1, 0]
         if t_hit is not None:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collision.roots import DEFAULT_MAX_DERIVATIVE
+from sim.rotation import quat_rotate
 
 KINDS = ("vertex_face", "edge_edge")
 COORDINATE_TIME_LIMIT = 1.0e6
@@ -115,15 +116,6 @@ def check_events(model, events, steps: int) -> list[Event]:
     return out
 
 
-def _quat_rotate(q, v):
-    """Rotates v (..., 3) by unit quaternions q (..., 4) (x, y, z, w)."""
-    import torch
-
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * torch.cross(u, v, dim=-1)
-    return v + w * t + torch.cross(u, t, dim=-1)
-
-
 def event_positions(model, events, particle_q, body_q):
     """World positions of each event's four vertices at its window's ends.
 
@@ -149,7 +141,7 @@ def event_positions(model, events, particle_q, body_q):
                 elif v.kind == "body":
                     pose = body_q[step, v.index]
                     r = torch.as_tensor(local[table[(v.index, v.vertex)]], dtype=torch.float64)
-                    pts.append(pose[:3] + _quat_rotate(pose[3:7], r))
+                    pts.append(pose[:3] + quat_rotate(pose[3:7], r))
                 else:
                     pts.append(torch.as_tensor(static[v.index], dtype=torch.float64))
             rows.append(torch.stack(pts))
@@ -265,42 +257,24 @@ class BranchTracker:
             self.previous = r[self.slot].copy()
             return self.slot
         re0, im0 = self.previous
-        candidates = range(3)
         if abs(re0) >= self.ESCAPING:
-            # the escaping root: it may come back from the other side (sign of q flips)
-            escaping = [k for k in candidates if abs(r[k, 0]) >= self.ESCAPING]
+            # the escaping root: it may come back from the other side (q changes sign)
+            escaping = [k for k in range(3) if abs(r[k, 0]) >= self.ESCAPING]
             if escaping:
-                self.slot = min(escaping, key=lambda k: abs(r[k, 0] - re0) if np.sign(r[k, 0]) == np.sign(re0) else np.inf) \
-                    if any(np.sign(r[k, 0]) == np.sign(re0) for k in escaping) else escaping[0]
+                same_side = [k for k in escaping if np.sign(r[k, 0]) == np.sign(re0)]
+                self.slot = (same_side or escaping)[0]
                 self.previous = r[self.slot].copy()
                 return self.slot
-        was_real = im0 == 0.0
-        complex_now = [k for k in candidates if r[k, 1] != 0.0]
-        finite = [k for k in candidates if abs(r[k, 0]) < self.ESCAPING]
-        pool = finite or list(candidates)
-        if was_real and complex_now:
-            # merged? the tracked root is the one of the new pair nearest in real part, with the
-            # sign rule: larger of the merging two -> +Im, smaller -> -Im
-            nearest = min(pool, key=lambda k: abs(r[k, 0] - re0) + abs(r[k, 1]))
-            if r[nearest, 1] != 0.0:
-                others_real = [k for k in candidates if r[k, 1] == 0.0]
-                pair_re = r[nearest, 0]
-                larger = re0 >= pair_re
-                if others_real:
-                    # the real root that stayed real is not ours when it is farther than the pair
-                    k_real = others_real[0]
-                    if abs(r[k_real, 0] - re0) < abs(pair_re - re0) * 0.5:
-                        nearest = k_real
-                if r[nearest, 1] != 0.0:
-                    sign = 1.0 if larger else -1.0
-                    nearest = next(k for k in complex_now if np.sign(r[k, 1]) == sign)
-            self.slot = nearest
-        elif not was_real and not complex_now:
+        finite = [k for k in range(3) if abs(r[k, 0]) < self.ESCAPING] or [0, 1, 2]
+        nearest = min(finite, key=lambda k: abs(r[k, 0] - re0) + abs(r[k, 1] - im0))
+        if im0 == 0.0 and r[nearest, 1] != 0.0:
+            # merged into a pair: the larger of the two real roots goes on as +Im
+            sign = 1.0 if re0 >= r[nearest, 0] else -1.0
+            nearest = next(k for k in range(3) if r[k, 1] * sign > 0.0)
+        elif im0 != 0.0 and r[nearest, 1] == 0.0:
             # a pair split: +Im goes on as the larger of the two new real roots, -Im the smaller
-            nearest = sorted(pool, key=lambda k: abs(r[k, 0] - re0))[:2]
-            nearest.sort(key=lambda k: r[k, 0])
-            self.slot = nearest[-1] if im0 > 0 else nearest[0]
-        else:
-            self.slot = min(pool, key=lambda k: (r[k, 0] - re0) ** 2 + (r[k, 1] - im0) ** 2)
+            pair = sorted(sorted(finite, key=lambda k: abs(r[k, 0] - re0))[:2], key=lambda k: r[k, 0])
+            nearest = pair[-1] if im0 > 0.0 else pair[0]
+        self.slot = nearest
         self.previous = r[self.slot].copy()
         return self.slot

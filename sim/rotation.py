@@ -35,12 +35,19 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``v`` (..., 3) rotated by the quaternions ``q`` (..., 4), normalised here."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+def _cross(a, b):
+    # by index arrays, so numpy arrays and torch tensors (autograd) both work
+    i, j = [1, 2, 0], [2, 0, 1]
+    return a[..., i] * b[..., j] - a[..., j] * b[..., i]
+
+
+def quat_rotate(q, v):
+    """``v`` (..., 3) rotated by the quaternions ``q`` (..., 4) (x, y, z, w), normalised here;
+    numpy arrays or torch tensors (differentiable)."""
+    q = q / (q * q).sum(-1)[..., None] ** 0.5
     u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
 
 
 def quat_turn(q: np.ndarray, omega: np.ndarray, duration: np.ndarray) -> np.ndarray:
