@@ -20,6 +20,8 @@ $(STAMP): $(PY) pyproject.toml constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
+	$(PY) -m scenes tunnel --out tunnel.rrd --iters 500
+	$(PY) benchmarks/inverse.py --seeds 4 --iters 500 --out tunnel_loss
 	$(PY) -m scenes paper_cubic --out paper_cubic.rrd
 	$(PY) -m scenes paper_quadratic --out paper_quadratic.rrd
 	$(PY) -m scenes cloth_rigid --out cloth_rigid.rrd --steps 240
@@ -33,6 +35,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/sim.py
 	$(PY) benchmarks/rollout.py
 	$(PY) benchmarks/grazing.py
+	$(PY) benchmarks/inverse.py
 
 fuzz: $(STAMP)
 	$(PY) benchmarks/fuzz_roots.py

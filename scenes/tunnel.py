@@ -8,15 +8,22 @@ particle's velocity after the bounce ``v_target`` (so the targets are reachable 
 start ``v0`` misses the tetrahedron altogether, and the *wanted* root (followed from ``v*`` to
 ``v0`` with :class:`sim.events.BranchTracker`) is complex there.
 
-Adam on the initial velocity then minimises, per iteration:
+Adam on the initial velocity then minimises, per iteration (one rollout each):
 
-* while the rollout misses: the lifted event of the face and the particle over the step that
-  holds ``t_target`` (:mod:`sim.events`): eq. ``loss`` on the tracked root (target
-  ``(t_target - window start, 0)``), the partner's real part (eq. ``complexconjugateloss``) while
-  the root is complex, and a hinge on the barycentric coordinates at the root's real part
-  (inside the face with a margin);
-* once it hits: the squared errors of the hit time (from the replayed contact through the
-  trajectory) and of the final velocity.
+* while the rollout misses: the lifted event of the face and the particle over the
+  ``EVENT_STEPS`` steps before the target hit's step (:mod:`sim.events`): eq. ``loss`` on the
+  tracked root (target ``(t_target - window start, 0)``), plus the partner's real part (eq.
+  ``complexconjugateloss``) while the root is complex, plus the squared distance of the
+  barycentric coordinates at the root's real part from the face's centroid (the loss does not
+  know where on the face the target hit is, so it aims at the middle);
+* from the first hit of the designated face on (a frictionless impulse is parallel to the face's
+  normal): the relative squared errors of the hit time (from the replayed contact through the
+  trajectory) and of the final velocity, plus a barrier that keeps the contact's barycentric
+  coordinates above a margin below the target's own. An iterate that leaves the face's hits or
+  does not lower this loss is rejected (back to the last accepted one, half the step); an
+  accepted one grows the step by ``HIT_GROWTH``. The loss changes discontinuously where the
+  contact moves to a neighbouring face or a second contact appears, and a plain Adam step
+  across such a boundary would never come back.
 
 The **baseline** is what a differentiable simulator without lifted roots has: the same loop with
 the unmollified ``-1/p'(t*)`` and event terms only when the root is real (a complex root has no
@@ -46,12 +53,14 @@ PARTICLE_MASS = 0.01  # [kg]
 EDGE = 0.3  # [m] tetrahedron size (vertices at +-EDGE/2 on alternating cube corners)
 EVENT_STEPS = 6  # the event's window: the steps before the one of the target hit (free flight
 # for every velocity near the target, so its roots extrapolate to the hit)
-INSIDE_MARGIN = 0.15
-HIT_SLACK = 0.05  # once hitting, the linearised event's coordinates may be this far outside
-INSIDE_WEIGHT = 1.0  # a linear hinge: a constant pull towards the inside however close the edge  # barycentric margin the miss loss asks for
-LEARNING_RATE = 0.05  # [m/s] Adam step while missing
-HIT_DECAY = 0.98  # per iteration once hitting: the step shrinks geometrically ...
-MIN_LEARNING_RATE = 1e-8  # ... down to this [m/s] (the time tolerance needs ~1e-6 m/s)
+MIN_PUSH, MAX_PUSH, PUSH_STEPS = 0.1, 0.8, 64  # the start: v* + push |v*| sideways, push in (0, 0.8]
+AIM_WEIGHT = 1.0  # the miss loss aims at the face's centroid (it does not know the target point)
+LEARNING_RATE = 0.05  # [m/s] Adam step while missing, and the hit phase's largest
+ADAM_BETAS = (0.9, 0.9)  # short second-moment memory: the miss loss' gradients fall by orders
+# of magnitude as the root comes in, and Adam's default 0.999 would keep the steps tiny for ~1000 iterations
+HIT_GROWTH = 1.5  # hit phase: the step grows by this after an accepted iterate, halves after a rejected one
+FACE_NORMAL_COSINE = 0.99  # a contact whose impulse is this parallel to the face's normal is on the face
+HIT_MARGIN = 0.02  # barycentric margin the hit phase keeps from the face's edges (less if the target is closer)
 
 
 def tetrahedron(size: float = EDGE):
@@ -77,6 +86,7 @@ class Problem:
     v_target: np.ndarray
     window: tuple
     tracked_slot: int  # the wanted root's slot at v0
+    hit_margin: float = HIT_MARGIN  # barycentric margin of the hit phase's barrier (below the target's own)
 
 
 def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False):
@@ -172,100 +182,183 @@ def make_problem(seed: int) -> Problem:
         # start: a miss, reached from v* by a growing sideways push
         side = np.cross(v_star, rng.normal(size=3))
         side *= np.linalg.norm(v_star) / np.linalg.norm(side)
-        for push in (0.3, 0.45, 0.6, 0.8):
+        # walk outwards, following the wanted root, to the first miss (from a push of 0.1 |v*| on)
+        # where it is complex
+        tracker = BranchTracker(wanted)
+        tracker.update(roots_star)
+        for push in np.arange(1, PUSH_STEPS + 1) * (MAX_PUSH / PUSH_STEPS):
             v0 = v_star + push * side
-            if _rollout(model, v0)[1].stats["contact_substeps"]:
-                continue
-            # follow the wanted root from v* to v0
-            tracker = BranchTracker(wanted)
-            tracker.update(roots_star)
-            for s in np.linspace(0.0, 1.0, 41)[1:]:
-                r = _rollout(model, v_star + s * push * side, events=[event])[1].event_roots[0].detach().numpy()
-                tracker.update(r)
-            if r[tracker.slot, 1] != 0.0:
-                return Problem(seed, model, face, v_star, v0, t_target, v_target, window, tracker.slot)
+            _, walk = _rollout(model, v0, events=[event])
+            slot = tracker.update(walk.event_roots[0].detach().numpy())
+            if push >= MIN_PUSH and not walk.stats["contact_substeps"] and walk.event_roots[0, slot, 1].item() != 0.0:
+                problem = Problem(seed, model, face, v_star, v0, t_target, v_target, window, slot)
+                w_star = hit_coordinates(problem, res, k_hit, t_hit).detach().numpy()
+                problem.hit_margin = min(HIT_MARGIN, 0.5 * float(w_star.min()))
+                return problem
     raise RuntimeError(f"tunnel: no problem found for seed {seed}")
+
+
+def on_designated_face(problem: Problem, res, step: int) -> bool:
+    """Whether the particle's first contact (in ``step``) is with the designated face: contact is
+    frictionless, so the velocity jump lies along the contact normal, and a face's normal
+    differs from the neighbours' by the tetrahedron's dihedral angle (70.5 deg)."""
+    from sim.events import event_positions
+
+    xa, _ = event_positions(problem.model, [_event(problem.face, (step, step + 1))],
+                            res.particle_q.detach(), res.body_q.detach())
+    c = xa[0, 1:].numpy()
+    n = np.cross(c[1] - c[0], c[2] - c[0])
+    qd = res.particle_qd[:, 0].detach().numpy()
+    jump = qd[step + 1] - qd[step]
+    return abs(jump @ n) > FACE_NORMAL_COSINE * np.linalg.norm(jump) * np.linalg.norm(n)
+
+
+def hit_coordinates(problem: Problem, res, step: int, t_hit):
+    """Barycentric coordinates (3,) on the designated face of the particle's position at the
+    time of impact ``t_hit`` [s] in ``step`` (the face's corners moved linearly over the step, as
+    the narrow phase does); differentiable through the trajectory."""
+    import torch
+
+    from sim.events import _coordinates, event_positions
+
+    xa, xb = event_positions(problem.model, [_event(problem.face, (step, step + 1))], res.particle_q, res.body_q)
+    local = t_hit - step * DT
+    corners = xa[0, 1:] + (local / DT) * (xb[0, 1:] - xa[0, 1:])
+    point = res.particle_q[step, 0] + local * res.particle_qd[step, 0]
+    return _coordinates(torch.tensor([False]), torch.cat([point[None], corners])[None])[0]
+
+
+def _miss_loss(problem: Problem, res, tracker, unmollified: bool):
+    """The lifted event's loss while the rollout misses (see the module docstring), or None when
+    it has nothing to give (the baseline at a complex root). Returns (loss, root, coordinates)."""
+
+    from sim.events import complex_conjugate_loss, root_loss
+
+    tau = (problem.t_target - problem.window[0] * DT) / DT
+    roots = res.event_roots[0] / DT
+    slot = tracker.update(roots)
+    root, w = roots[slot], res.event_coords[0, slot]
+    is_complex = bool(root[1].detach() != 0.0)
+    if unmollified and is_complex:
+        return None, root, w  # a real-roots-only simulator has no value here, let alone a gradient
+    if is_complex:
+        partner = next(k for k in range(3) if k != slot and float(roots[k, 1].detach()) == -float(root[1].detach()))
+        loss = complex_conjugate_loss(root, roots[partner], (tau, 0.0))
+    else:
+        loss = root_loss(root, (tau, 0.0))
+    return loss + AIM_WEIGHT * ((w - 1.0 / 3.0) ** 2).sum(), root, w
+
+
+def _hit_loss(problem: Problem, res, t_hit, step: int):
+    """Relative squared errors of the hit time and the final velocity, plus a barrier that keeps
+    the contact inside the designated face (zero at the target)."""
+    import torch
+
+    v_target = torch.as_tensor(problem.v_target, dtype=torch.float64)
+    v_final = res.particle_qd[-1, 0]
+    w = hit_coordinates(problem, res, step, t_hit)
+    barrier = (torch.relu(problem.hit_margin - w) / problem.hit_margin).pow(2).sum()
+    loss = ((t_hit - problem.t_target) / problem.t_target) ** 2 + ((v_final - v_target) ** 2).sum() / (v_target * v_target).sum()
+    return loss + barrier
 
 
 def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None) -> dict[str, Any]:
     """Adam on the initial velocity (see the module docstring). ``method``: "proposed" or
-    "baseline". Returns the figures of the run and its history."""
+    "baseline". Returns the figures of the run and its history (one entry per rollout)."""
     import torch
 
-    from sim.events import BranchTracker, complex_conjugate_loss, root_loss
+    from sim.events import BranchTracker
 
     if method not in ("proposed", "baseline"):
         raise ValueError(f"method must be 'proposed' or 'baseline', got {method!r}")
     unmollified = method == "baseline"
     v = torch.tensor(problem.v0[None], dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([v], lr=LEARNING_RATE)
+    opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)
     tracker = BranchTracker(problem.tracked_slot)
     event = _event(problem.face, problem.window)
-    tau = problem.t_target - problem.window[0] * DT
-    v_target = torch.tensor(problem.v_target, dtype=torch.float64)
     v_scale = float(np.linalg.norm(problem.v_target))
-    history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": []}
-    reached = None
+    history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
+               "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
+    reached, stalled = None, False
+    accepted = None  # hit phase: (velocity, loss, gradient) of the last accepted iterate
+    lr = LEARNING_RATE
     t0 = time.perf_counter()
     for it in range(iters + 1):
         opt.zero_grad()
         _, res = _rollout(problem, v, events=[event], unmollified=unmollified)
-        t_hit, _ = hit_time(res)
-        v_final = res.particle_qd[-1, 0]
-        if t_hit is not None:
+        t_hit, step = hit_time(res)
+        good = t_hit is not None and on_designated_face(problem, res, step)
+        time_error = velocity_error = float("nan")
+        root = w = None
+        if good:
             time_error = float(t_hit.detach()) - problem.t_target
-            velocity_error = float(torch.linalg.norm(v_final - v_target)) / v_scale
-            loss = ((t_hit - problem.t_target) / DT) ** 2 + ((v_final - v_target) ** 2).sum() / v_scale**2
-            # keep the hit on the designated face (the event's coordinates at the root nearest the target)
-            roots = res.event_roots[0].detach() / DT
-            slot = int(torch.argmin((roots[:, 0] - tau / DT).abs() + roots[:, 1].abs()))
-            loss = loss + INSIDE_WEIGHT * torch.relu(-HIT_SLACK - res.event_coords[0, slot]).sum()
+            velocity_error = float(torch.linalg.norm(res.particle_qd[-1, 0].detach() - torch.as_tensor(problem.v_target))) / v_scale
+            loss = _hit_loss(problem, res, t_hit, step)
+        elif accepted is None:
+            loss, root, w = _miss_loss(problem, res, tracker, unmollified)
         else:
-            time_error, velocity_error = float("nan"), float("nan")
-            roots = res.event_roots[0] / DT
-            slot = tracker.update(roots)
-            root = roots[slot]
-            is_complex = bool(root[1].detach() != 0.0)
-            loss = torch.zeros((), dtype=torch.float64)
-            if not unmollified or not is_complex:
-                loss = root_loss(root, (tau / DT, 0.0))
-                if is_complex and not unmollified:
-                    partner = next(k for k in range(3) if k != slot and float(roots[k, 1].detach()) == -float(root[1].detach()))
-                    loss = complex_conjugate_loss(root, roots[partner], (tau / DT, 0.0))
-            w = res.event_coords[0, slot]
-            if not unmollified or not is_complex:
-                # (the baseline has no position for a complex root either)
-                loss = loss + INSIDE_WEIGHT * torch.relu(INSIDE_MARGIN - w).sum()
-            history.setdefault("root", []).append(root.detach().numpy().copy())
-            history.setdefault("coords", []).append(w.detach().numpy().copy())
-        history["loss"].append(float(loss.detach()))
+            loss = None  # left the designated face's hits: rejected below
+        done = good and abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE
+        if accepted is None and good:
+            opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)  # the miss loss' moments mean nothing here
+            lr = LEARNING_RATE
+        take = accepted is None or (good and float(loss.detach()) < accepted[1])
+        history["loss"].append(float(loss.detach()) if loss is not None else float("nan"))
         history["hit"].append(t_hit is not None)
         history["time_error"].append(time_error)
         history["velocity_error"].append(velocity_error)
         history["velocity"].append(v.detach().numpy()[0].copy())
-        if t_hit is not None and abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE:
+        history["accepted"].append(bool(take))
+        history["on_face"].append(bool(good))
+        history["trajectory"].append(res.particle_q[:, 0].detach().numpy().copy())
+        history["root"].append(None if root is None else root.detach().numpy().copy())
+        history["coords"].append(None if w is None else w.detach().numpy().copy())
+        if done:
             reached = it
             history["grad_norm"].append(0.0)
             break
-        if it == iters or not loss.requires_grad:
+        if take and (loss is None or not loss.requires_grad):
+            # no gradient: the iterate cannot move, and every remaining iteration would repeat
+            # this rollout bit for bit
+            stalled = True
             history["grad_norm"].append(0.0)
-            if not loss.requires_grad:
-                continue
             break
-        loss.backward()
+        if it == iters:
+            history["grad_norm"].append(0.0)
+            break
+        if take:
+            loss.backward()
+            if good:
+                if accepted is not None:
+                    lr = min(lr * HIT_GROWTH, LEARNING_RATE)
+                accepted = (v.detach().clone(), float(loss.detach()), v.grad.detach().clone())
+        else:
+            # a step that left the designated face's hits or did not lower the loss: back to the
+            # accepted iterate, shorter step
+            lr *= 0.5
+            with torch.no_grad():
+                v.copy_(accepted[0])
+            v.grad = accepted[2].clone()
         history["grad_norm"].append(float(torch.linalg.norm(v.grad)))
-        opt.step()
         for group in opt.param_groups:
-            group["lr"] = max(group["lr"] * HIT_DECAY, MIN_LEARNING_RATE) if t_hit is not None else LEARNING_RATE
+            group["lr"] = lr
+        opt.step()
         if callback is not None:
             callback(it, history)
+    hits = history["hit"]
+    last = len(hits) - 1
+    if reached is None and accepted is not None and not history["accepted"][-1]:
+        last = max(i for i, a in enumerate(history["accepted"]) if a)  # report the accepted iterate
     return {
         "reached_target": reached is not None,
         "iterations_to_target": reached,
-        "final_loss": history["loss"][-1],
-        "time_error": history["time_error"][-1],
-        "velocity_error": history["velocity_error"][-1],
-        "hit": history["hit"][-1],
+        "final_loss": history["loss"][last],
+        "time_error": history["time_error"][last],
+        "velocity_error": history["velocity_error"][last],
+        "hit": hits[last],
+        "first_hit_iteration": int(np.argmax(hits)) if any(hits) else None,
+        "stalled": stalled,
+        "rollouts": len(hits),
         "wall_time": time.perf_counter() - t0,
         "history": history,
     }
@@ -280,12 +373,40 @@ def _figures(run: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in run.items() if k != "history"}
 
 
+def _log_tetrahedron(log: Any, problem: Problem) -> None:
+    """The tetrahedron's motion along the aimed shot (timeline ``frame``; topology static) and
+    the target hit point."""
+    import rerun as rr
+
+    from sim.rotation import quat_rotate
+
+    _, res = _rollout(problem, problem.v_star)
+    body_q = res.body_q[:, 0].detach().numpy()
+    local = problem.model.shape_vertices.numpy()
+    faces = problem.model.shape_faces.numpy().reshape(-1, 3)
+    rec = log.stream
+    rec.log("/world/tetrahedron", rr.Mesh3D(vertex_positions=local, triangle_indices=faces), static=True)
+    for frame, pose in enumerate(body_q):
+        rec.set_time("frame", sequence=frame)
+        world = pose[:3] + np.stack([quat_rotate(pose[3:7], r) for r in local])
+        rec.log("/world/tetrahedron", rr.Mesh3D.from_fields(vertex_positions=world))
+    t_hit, step = hit_time(res)
+    x = res.particle_q[step, 0].numpy() + (float(t_hit) - step * DT) * res.particle_qd[step, 0].numpy()
+    rec.log("/world/target_hit", rr.Points3D([x], radii=0.01, colors=[[255, 200, 0]]), static=True)
+
+
 def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     """Draws the problem of ``--seed``, optimises it with the proposed method and the baseline,
-    logs both loss curves (``/metrics/loss/<method>``, timeline ``iteration``), the hit flags and
-    the initial velocity of every iterate (``/metrics/velocity/<method>/<axis>``)."""
+    logs both loss curves (``/metrics/loss/<method>``, timeline ``iteration``), the hit flags,
+    the initial velocity of every iterate (``/metrics/velocity/<method>/<axis>``), every
+    iterate's particle path (``/iterates/<method>/path``, timeline ``iteration``) and the
+    tetrahedron's motion (``/world/tetrahedron``, timeline ``frame``)."""
+    import rerun as rr
+
     problem = make_problem(args.seed)
+    _log_tetrahedron(log, problem)
     methods = {}
+    colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60]}
     for method in ("proposed", "baseline"):
         result = optimise(problem, args.iters, method)
         h = result["history"]
@@ -295,9 +416,11 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         vel = np.asarray(h["velocity"])
         for axis, name in enumerate("xyz"):
             log.log_scalars(f"/metrics/velocity/{method}/{name}", vel[:, axis], sequence=frames)
+        for i, path in enumerate(h["trajectory"]):
+            log.stream.set_time("iteration", sequence=i)
+            log.stream.log(f"/iterates/{method}/path", rr.LineStrips3D([path], colors=[colors[method]]))
         figures = _figures(result)
         figures["left_the_miss"] = bool(any(h["hit"]))
-        figures["first_hit_iteration"] = int(np.argmax(h["hit"])) if any(h["hit"]) else None
         methods[method] = figures
     return {
         "scene": NAME,

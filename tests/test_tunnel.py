@@ -30,11 +30,38 @@ def test_start_is_a_miss_with_a_complex_wanted_root(problem):
     assert np.allclose(hit.particle_qd[-1, 0].numpy(), problem.v_target)
 
 
-def test_proposed_leaves_the_miss_baseline_cannot(problem):
-    proposed = optimise(problem, 200, "proposed")
-    assert any(proposed["history"]["hit"])
-    baseline = optimise(problem, 20, "baseline")
-    assert not any(baseline["history"]["hit"])
+def test_hit_loss_is_zero_at_the_target_and_the_face_is_recognised(problem):
+    """The hit phase's loss (time, velocity, edge barrier) vanishes at the aimed shot, whose
+    contact is on the designated face with coordinates inside it."""
+    from scenes.tunnel import _hit_loss, _rollout, hit_coordinates, hit_time, on_designated_face
+
+    _, res = _rollout(problem, problem.v_star)
+    t_hit, step = hit_time(res)
+    assert abs(float(t_hit) - problem.t_target) < 1e-12
+    assert on_designated_face(problem, res, step)
+    w = hit_coordinates(problem, res, step, t_hit).detach().numpy()
+    assert abs(w.sum() - 1.0) < 1e-12 and w.min() >= 2.0 * problem.hit_margin - 1e-12
+    assert float(_hit_loss(problem, res, t_hit, step)) < 1e-20
+
+
+def test_proposed_reaches_the_target_baseline_cannot_leave_the_miss(problem):
+    from scenes.tunnel import TIME_TOLERANCE, VELOCITY_TOLERANCE, _rollout, hit_time
+
+    proposed = optimise(problem, 500, "proposed")
+    assert proposed["reached_target"], proposed["time_error"]
+    h = proposed["history"]
+    # check the claim against a fresh rollout of the final iterate
+    _, res = _rollout(problem, h["velocity"][-1])
+    t_hit, _ = hit_time(res)
+    assert abs(float(t_hit) - problem.t_target) < TIME_TOLERANCE
+    v_final = res.particle_qd[-1, 0].numpy()
+    assert np.linalg.norm(v_final - problem.v_target) < VELOCITY_TOLERANCE * np.linalg.norm(problem.v_target)
+    # the hit phase only accepts iterates that lower its loss
+    kept = [loss for loss, good, took in zip(h["loss"], h["on_face"], h["accepted"]) if good and took]
+    assert all(b < a for a, b in zip(kept, kept[1:]))
+
+    baseline = optimise(problem, 500, "baseline")
+    assert baseline["stalled"] and not any(baseline["history"]["hit"])
     assert np.all(np.asarray(baseline["history"]["velocity"]) == problem.v0)
 
 
@@ -48,3 +75,20 @@ def test_cli_reports_both_methods(tmp_path):
     for figures in summary["methods"].values():
         assert {"reached_target", "final_loss", "iterations_to_target"} <= set(figures)
     assert out.stat().st_size > 0
+
+
+def test_inverse_benchmark_smoke(tmp_path):
+    """A tiny configuration of benchmarks/inverse.py, so the command cannot rot silently."""
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = tmp_path / "inverse"
+    proc = subprocess.run([sys.executable, os.path.join(root, "benchmarks", "inverse.py"), "--seeds", "1",
+                           "--iters", "2", "--jobs", "1", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "inverse.json").read_text())
+    assert set(data["summary"]) == {"proposed", "baseline"}
+    assert data["runs"][0]["baseline"]["stalled"] is True
+    assert (tmp_path / "inverse.png").stat().st_size > 0
+    assert "| proposed |" in (tmp_path / "inverse.md").read_text()
