@@ -82,6 +82,10 @@ APPROACH_EPS = 1e-12
 times the contact's largest vertex speed plus the separation speed (float64 rounding of a
 velocity that is exactly separating or tangential stays far inside)."""
 
+END_OF_SUBSTEP = 1e-9
+"""A CCD hit this close (relative) to the end of the substep lies on the end of the planned path;
+its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
+
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
@@ -109,6 +113,16 @@ class _Contacts:
 
     def __len__(self) -> int:
         return len(self.toi)
+
+    def at_end(self, kind: np.ndarray, pair: np.ndarray, toi: np.ndarray, h: float) -> np.ndarray:
+        """(C,) bool: the pair is in the set already, at the very end of the substep ``h`` [s],
+        and detected there again (``toi`` [s])."""
+        end = h * (1.0 - END_OF_SUBSTEP)
+        out = np.zeros(len(pair), dtype=bool)
+        for c in range(len(pair)):
+            row = self.keys.get((int(kind[c]), int(pair[c, 0]), int(pair[c, 1])))
+            out[c] = row is not None and self.toi[row] >= end and toi[c] >= end
+        return out
 
     def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None):
         """Adds contacts (a pair already present takes the new normal, weights and target, and
@@ -431,15 +445,21 @@ class ImpulseCollisionHandler:
         owner_t[b] = t_b[o[b]]
         return np.where((toi[:, None] < owner_t)[..., None], v_before, v_after)
 
-    def _approach(self, idx, w, n, vel, x0, x1, h):
+    def _approach(self, idx, w, n, vel, x0, x1, h, at_end):
         """Normal relative velocities (C,) at the contacts and whether each CCD hit approaches:
-        by its velocities at ``t*`` or along the straight paths ``x0 -> x1`` checked by CCD (their
-        mean velocity over the substep decides whether the primitives pass through)."""
+        by its velocities at ``t*`` or along the straight paths ``x0 -> x1`` checked by CCD
+        (their mean velocity over the substep decides whether the primitives pass through). A
+        contact already in the set at the very end of the substep (``at_end`` (C,) bool) that
+        leaves faster than the separation speed ``delta / h`` is judged by its velocities only:
+        its path ends on the contact instead of passing through it, and judging it by the path
+        re-added it every round until the impact-zone fail-safe froze it (an elastic bounce off a
+        wall stopped dead). Slower ones (inelastic contacts) keep the path test and the fail-safe."""
         vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
         vn_path = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h), n)
         # below -APPROACH_EPS relative: rounding of an exactly separating pair is not an approach
         eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
-        return vn, (vn < -eps) | (vn_path < -eps)
+        leaving = at_end & (vn > self._sep_speed)
+        return vn, (vn < -eps) | ((vn_path < -eps) & ~leaving)
 
     def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
@@ -634,7 +654,7 @@ class ImpulseCollisionHandler:
                 w[on_plane] = [1.0, 0.0, 0.0, 0.0]
                 n[on_plane] = self.planes[pair[on_plane, 1], :3]
             vel = self._velocities_at(idx, toi * h, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
-            vn, approaching = self._approach(idx, w, n, vel, x0, x1, h)
+            vn, approaching = self._approach(idx, w, n, vel, x0, x1, h, cs.at_end(kind, pair, toi * h, h))
             if not approaching.any():
                 break
             if iteration >= self.max_iterations:
@@ -836,7 +856,7 @@ class ImpulseCollisionHandler:
             out, host = geometry(kind, pair, idx, frac, source, X1, t_p, t_b)
             toi, w, n, _ = host
             vel = self._velocities_at(idx, toi, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
-            _, approaching = self._approach(idx, w, n, vel, x0, x1, h)
+            _, approaching = self._approach(idx, w, n, vel, x0, x1, h, cs.at_end(kind, pair, toi, h))
             if not approaching.any():
                 break
             if iteration >= self.max_iterations:

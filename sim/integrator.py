@@ -209,7 +209,8 @@ class SemiImplicitIntegrator:
                     body_q=pred.body_q,
                     body_qd=pred.body_qd,
                 )
-            self.collide_planes(s_in.particle_q, pred.particle_qd, out.particle_q, out.particle_qd, h, requires_grad)
+            self.collide_planes(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q, out.particle_qd, h,
+                               requires_grad)
             cur = out
         if handler is not None:
             result = handler(s_in, cur, h)
@@ -220,9 +221,10 @@ class SemiImplicitIntegrator:
             if src is not dst and src.shape[0] > 0:
                 wp.copy(dst, src)
 
-    def collide_planes(self, x0, v, x_out, v_out, h: float, requires_grad: bool = True) -> None:
+    def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True) -> None:
         """Particle-vs-plane time-of-impact integration over one substep ``h``: from start
-        positions ``x0`` and predicted velocities ``v`` into ``x_out``, ``v_out`` (fresh arrays).
+        positions ``x0``, start velocities ``v_start`` and predicted velocities ``v`` (after the
+        forces) into ``x_out``, ``v_out`` (fresh arrays).
         Which plane each particle hits is chosen outside the tape; the response is recorded."""
         m, d = self.model, self.device
         idx = self._plane_index(requires_grad)
@@ -239,7 +241,7 @@ class SemiImplicitIntegrator:
         wp.launch(
             respond_plane_contacts,
             dim=m.particle_count,
-            inputs=[x0, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness, hd],
+            inputs=[x0, v_start, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness, hd],
             outputs=[x_out, v_out],
             device=d,
         )

@@ -96,3 +96,29 @@ def test_elastic_bounce_off_a_static_face_mirrors_the_jacobian(normal_axis):
     expected[normal_axis] = 2.0 * plane - free[normal_axis]
     np.testing.assert_allclose(res.particle_q[-1, 0].detach().numpy(), expected, atol=1e-12)
     np.testing.assert_allclose(jac, T * mirror, atol=1e-10)
+
+
+def _wall(gap: float):
+    b = ModelBuilder(gravity=0.0)
+    b.add_particle((0.0, 1.75 - gap, 1.0), mass=1.0)
+    b.add_static_mesh(*box_mesh(np.array([1.0, 0.25, 1.0])), pos=(0.0, 2.0, 1.0))
+    b.set_contact(restitution=1.0, friction=0.0, thickness=0.0)
+    return b.finalize()
+
+
+def _wall_bounce(gap: float, speed: float = 5.0, steps: int = 4, h: float = 0.05):
+    """A particle ``gap`` [m] in front of a static wall (face at y = 1.75), moving at ``speed``
+    into it, no gravity, elastic: (final y, d final y / d v_y, rollout result)."""
+    v = torch.tensor([[0.0, speed, 0.0]], dtype=torch.float64, requires_grad=True)
+    res = rollout(_wall(gap), steps, h, 1, particle_qd=v)
+    res.particle_q[-1, 0, 1].backward()
+    return float(res.particle_q[-1, 0, 1].detach()), float(v.grad[0, 1]), res
+
+
+def test_contact_at_the_very_end_of_a_substep_bounces_instead_of_freezing():
+    """The particle reaches the wall exactly at the end of the first step (gap = v h): it must
+    bounce (velocity -v, no impact-zone fail-safe), where it used to be frozen by the fail-safe."""
+    y, _, res = _wall_bounce(0.25)
+    assert res.stats["failsafe_substeps"] == 0
+    np.testing.assert_allclose(res.particle_qd[-1, 0, 1].detach().numpy(), -5.0, rtol=1e-6)
+    np.testing.assert_allclose(y, 2 * 1.75 - (1.5 + 1.0), atol=1e-6)
