@@ -21,7 +21,8 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m scenes tunnel --out tunnel.rrd --iters 500
-	$(PY) benchmarks/inverse.py --seeds 4 --iters 500 --out tunnel_loss
+	$(PY) benchmarks/inverse.py --scenes tunnel --seeds 4 --iters 500 --out tunnel_loss
+	$(PY) -m scenes bank_shot --out bank_shot.rrd --start miss --iters 300
 	$(PY) -m scenes paper_cubic --out paper_cubic.rrd
 	$(PY) -m scenes paper_quadratic --out paper_quadratic.rrd
 	$(PY) -m scenes cloth_rigid --out cloth_rigid.rrd --steps 240

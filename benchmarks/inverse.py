@@ -1,7 +1,12 @@
 """Inverse control with lifted events: the ``tunnel`` scene over many seeds, proposed vs baseline.
 
-    python benchmarks/inverse.py [--seeds 50] [--iters 500] [--jobs 2]
-                                 [--out benchmarks/results/inverse_tunnel]
+    python benchmarks/inverse.py [--seeds 50] [--iters 500] [--jobs 2] [--scenes tunnel,bank_shot]
+                                 [--bank-iters 300] [--out benchmarks/results/inverse_tunnel]
+
+``bank_shot`` (:mod:`scenes.bank_shot`, Newton's ``diffsim_ball`` problem): both starts with the
+proposed method, the baseline and CMA-ES, then Newton 1.8's own example (:mod:`newton_ball`,
+penalty contact, float32, gradient descent) from both starts, each simulator's gradient against
+central differences of its own forward, in one run: ``<out>_bank_shot.md/.json/.png``.
 
 For each seed ``0 .. seeds-1`` it draws the ``tunnel`` problem (:mod:`scenes.tunnel`: a miss
 whose wanted root is complex, targets from a shot that really hits), runs the proposed method
@@ -52,6 +57,99 @@ def run_seed(args):
     return out
 
 
+def run_bank_shot(args):
+    """One (start, method) of ``bank_shot`` (a worker process): figures and curves."""
+    start, method, iters = args
+    import warp as wp
+
+    wp.config.quiet = True
+    from scenes import bank_shot as B
+
+    model = B.build()
+    r = B.optimise(model, B.STARTS[start], iters, method)
+    h = r.pop("history")
+    r["seconds_per_rollout"] = r["wall_time"] / max(r["rollouts"], 1)
+    r["distance_curve"] = h["distance"]
+    grads = [g for g in h["grad_norm"] if g > 0.0]
+    r["median_grad_norm"] = float(np.median(grads)) if grads else 0.0
+    return {"start": start, "method": method, **r}
+
+
+def bank_shot(args) -> dict:
+    """``bank_shot`` from both starts with the three methods, Newton's ``diffsim_ball`` from both
+    starts, and each simulator's gradient against central differences of its own forward."""
+    import multiprocessing as mp
+
+    from scenes import bank_shot as B
+
+    B.build()
+    tasks = [(start, method, args.bank_iters) for start in ("newton", "miss") for method in B.METHODS]
+    with mp.get_context("spawn").Pool(args.jobs) as pool:
+        ours = list(pool.imap(run_bank_shot, tasks))
+    # Newton after the pool, alone on the machine (its wall time is not shared with our workers)
+    import newton_ball
+
+    newton = []
+    for start in ("newton", "miss"):
+        r = newton_ball.optimise(args.bank_iters, B.STARTS[start], B.TARGET_TOLERANCE)
+        r["seconds_per_rollout"] = r["wall_time"] / max(r["rollouts"], 1)
+        newton.append({"start": start, "method": "newton (penalty, GD)", **r})
+    model = B.build()
+    shifted = np.asarray(B.STARTS["newton"]) + np.array([0.003, 0.007, -0.005])
+    checks = {
+        "tunnelsim at Newton's start + (3, 7, -5) mm/s, step 1e-6": B.gradient_check(model, shifted),
+        "tunnelsim at Newton's start exactly, step 1e-6": B.gradient_check(model, B.STARTS["newton"]),
+        "Newton at its start, step 1e-3 (its example's check)": newton_ball.NewtonBall().check_grad(1e-3),
+    }
+    lines = [
+        f"# bank_shot (Newton's diffsim_ball problem): {args.bank_iters} iterations per method",
+        "",
+        "Success: the end point within 1 cm of the target after bouncing off the floor and the wall.",
+        "tunnelsim: exact CCD impulses, float64, Adam; Newton 1.8: penalty contact, float32, gradient",
+        "descent (rate 0.02), both on the CPU. Rollouts: simulations run (CMA-ES: forward only).",
+        "",
+        "| start | method | reached | rollouts to target | final distance [m] | floor/wall bounces | wall time [s] | s per rollout |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in ours + newton:
+        bounces = f"{r.get('floor_bounces', '-')}/{r.get('wall_bounces', '-')}"
+        lines.append(f"| {r['start']} | {r['method']} | {r['reached_target']} | {r['iterations_to_target']} | "
+                     f"{r['final_distance']:.4f} | {bounces} | {r['wall_time']:.1f} | {r['seconds_per_rollout']:.3f} |")
+    lines += ["", "| gradient check | analytic | central differences | relative error |", "|---|---|---|---|"]
+    for name, c in checks.items():
+        lines.append(f"| {name} | {np.round(c['analytic'], 4).tolist()} | {np.round(c['numeric'], 4).tolist()} | "
+                     f"{c['relative_error']:.2e} |")
+    table = "\n".join(lines)
+    print()
+    print(table)
+    out = args.out + "_bank_shot"
+    with open(out + ".md", "w") as f:
+        f.write(table + "\n")
+    with open(out + ".json", "w") as f:
+        json.dump({"iters": args.bank_iters, "runs": ours + newton, "gradient_checks": checks}, f)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, start in zip(axes, ("newton", "miss")):
+        for r in ours + newton:
+            if r["start"] == start:
+                ax.semilogy(np.arange(len(r["distance_curve"])), r["distance_curve"], label=r["method"])
+        ax.axhline(B.TARGET_TOLERANCE, color="grey", ls=":")
+        ax.set_title(f"start: {start} {B.STARTS[start]} m/s")
+        ax.set_xlabel("rollout")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("distance to the target [m]")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(out + ".png", dpi=120)
+    print(f"wrote {out}.md, .json, .png")
+    return {"runs": ours + newton, "gradient_checks": checks}
+
+
 def _median(values):
     values = [v for v in values if v is not None]
     return float(np.median(values)) if values else float("nan")
@@ -66,10 +164,24 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "inverse_tunnel"),
                         help="path prefix of the .md, .json and .png outputs")
     parser.add_argument("--curves", type=int, default=5, help="seeds whose loss curves the PNG shows")
+    parser.add_argument("--scenes", default="tunnel,bank_shot",
+                        help="comma-separated scenes to run: tunnel, bank_shot (default both)")
+    parser.add_argument("--bank-iters", type=int, default=300,
+                        help="bank_shot: iterations per method, Newton's included (default %(default)s)")
     args = parser.parse_args(argv)
-    for name in ("seeds", "iters", "jobs"):
+    for name in ("seeds", "iters", "jobs", "bank_iters"):
         if getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1")
+            parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    scenes = [x.strip() for x in args.scenes.split(",") if x.strip()]
+    if not scenes or any(x not in ("tunnel", "bank_shot") for x in scenes):
+        parser.error(f"--scenes must be a comma-separated subset of tunnel,bank_shot, got {args.scenes!r}")
+    if "tunnel" in scenes:
+        tunnel(args)
+    if "bank_shot" in scenes:
+        bank_shot(args)
+
+
+def tunnel(args) -> None:
 
     import multiprocessing as mp
 

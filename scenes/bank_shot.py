@@ -29,8 +29,9 @@ Adam on the initial velocity, one rollout per iteration:
 * **cma**: CMA-ES (the ``cma`` package) on the same loss as the proposed method (its value only;
   a miss costs ``MISS_OFFSET`` more than any hit) with the same number of rollouts.
 
-Success: the final position within ``TARGET_TOLERANCE`` (1 cm) of the target *and* a bounce off
-the wall (a bank shot; a direct throw does not count).
+Success: the final position within ``TARGET_TOLERANCE`` (1 cm) of the target *and* bounces off
+the floor and the wall (a bank shot; a direct throw, or one off the wall alone, does not count).
+"The wall is hit" below means both bounces happen.
 """
 
 from __future__ import annotations
@@ -130,6 +131,11 @@ def bounces(res) -> dict[str, int]:
     return {"floor": floor, "wall": wall}
 
 
+def banked(hits: dict[str, int]) -> bool:
+    """A bank shot: the path bounced off the floor and the wall."""
+    return hits["floor"] > 0 and hits["wall"] > 0
+
+
 def distance(res) -> float:
     return float(np.linalg.norm(res.particle_q[-1, 0].detach().numpy() - np.asarray(TARGET)))
 
@@ -190,7 +196,7 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None) 
         _, res = simulate(model, v, events=events, unmollified=unmollified)
         hits = bounces(res)
         dist = distance(res)
-        wall = hits["wall"] > 0
+        wall = banked(hits)
         if wall or method == "baseline":
             loss = _distance_loss(res)
         elif accepted is None:
@@ -257,7 +263,7 @@ def task_loss(model, v) -> tuple[float, Any]:
     """The proposed method's loss as a plain value (CMA-ES): the squared distance when the wall
     is hit, ``MISS_OFFSET`` plus the event loss when it is missed. Returns (loss, rollout)."""
     _, res = simulate(model, v, events=events_of(model))
-    if bounces(res)["wall"] > 0:
+    if banked(bounces(res)):
         return float(_distance_loss(res)), res
     return MISS_OFFSET + float(miss_loss(res)[0]), res
 
@@ -295,7 +301,7 @@ def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
             history["accepted"].append(bool(take))
             if take:
                 best = (f, len(history["loss"]) - 1)
-            if hits["wall"] > 0 and dist < TARGET_TOLERANCE:
+            if banked(hits) and dist < TARGET_TOLERANCE:
                 reached = len(history["loss"]) - 1
             values.append(f)
         es.tell(xs, values)

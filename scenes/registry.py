@@ -33,6 +33,7 @@ SCENES: dict[str, str] = {
     "cloth_rigid": "scenes.cloth_rigid",
     "grazing": "scenes.grazing",
     "tunnel": "scenes.tunnel",
+    "bank_shot": "scenes.bank_shot",
 }
 """Scene name -> module path."""
 

@@ -84,7 +84,7 @@ def test_inverse_benchmark_smoke(tmp_path):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "inverse"
     proc = subprocess.run([sys.executable, os.path.join(root, "benchmarks", "inverse.py"), "--seeds", "1",
-                           "--iters", "2", "--jobs", "1", "--out", str(out)],
+                           "--iters", "2", "--jobs", "1", "--scenes", "tunnel", "--out", str(out)],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "inverse.json").read_text())
