@@ -12,10 +12,17 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import warp as wp
 
 TARGET = (0.0, -2.0, 1.5)
 FRAMES, SUBSTEPS, FPS = 36, 8, 60
 TRAIN_RATE = 0.02
+
+
+@wp.kernel
+def _loss_kernel(pos: wp.array(dtype=wp.vec3), target: wp.vec3, loss: wp.array(dtype=float)):
+    delta = pos[0] - target
+    loss[0] = wp.dot(delta, delta)
 
 
 class NewtonBall:
@@ -23,9 +30,7 @@ class NewtonBall:
 
     def __init__(self, start_velocity=(0.0, 5.0, -5.0), device: str = "cpu"):
         import newton
-        import warp as wp
 
-        self.wp = wp
         self.device = device
         self.sim_dt = 1.0 / FPS / SUBSTEPS
         with wp.ScopedDevice(device):
@@ -52,11 +57,10 @@ class NewtonBall:
             self.loss = wp.zeros(1, dtype=wp.float32, requires_grad=True)
 
     def forward(self):
-        wp = self.wp
         for t in range(FRAMES * SUBSTEPS):
             self.states[t].clear_forces()
             self.solver.step(self.states[t], self.states[t + 1], self.control, self.contacts, self.sim_dt)
-        wp.launch(_loss_kernel(), dim=1, inputs=[self.states[-1].particle_q, wp.vec3(*TARGET), self.loss],
+        wp.launch(_loss_kernel, dim=1, inputs=[self.states[-1].particle_q, wp.vec3(*TARGET), self.loss],
                   device=self.device)
         return self.loss
 
@@ -78,7 +82,6 @@ class NewtonBall:
 
     def gradient(self) -> tuple[float, np.ndarray]:
         """(loss, d loss / d initial velocity) by the tape."""
-        wp = self.wp
         tape = wp.Tape()
         with tape:
             self.forward()
@@ -105,23 +108,6 @@ class NewtonBall:
         _, analytic = self.gradient()
         return {"analytic": analytic.tolist(), "numeric": numeric.tolist(), "step": eps,
                 "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
-
-
-_KERNEL = None
-
-
-def _loss_kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        import warp as wp
-
-        @wp.kernel
-        def loss_kernel(pos: wp.array(dtype=wp.vec3), target: wp.vec3, loss: wp.array(dtype=float)):
-            delta = pos[0] - target
-            loss[0] = wp.dot(delta, delta)
-
-        _KERNEL = loss_kernel
-    return _KERNEL
 
 
 def optimise(iters: int, start_velocity=(0.0, 5.0, -5.0), tolerance: float = 0.01) -> dict:

@@ -22,8 +22,8 @@ Adam on the initial velocity, one rollout per iteration:
   ``complexconjugateloss`` if it is complex) and its barycentric coordinates at the root's real
   part at the triangle's centroid. For a static wall the root is real; the miss lies outside the
   triangle, and the coordinates carry it in. Once the wall is hit, the loss is Newton's, the squared
-  distance to the target; an iterate that leaves the wall or raises the loss is rejected (back to
-  the last accepted one, half the step), an accepted one grows the step by ``GROWTH``.
+  distance to the target, with the guarded steps of :class:`scenes.optim.GuardedAdam` (an
+  iterate that leaves the wall or raises the loss is rejected).
 * **baseline**: what a differentiable simulator without lifted events has: the squared distance
   from the start (the same loop, the unmollified ``-1/p'(t*)``).
 * **cma**: CMA-ES (the ``cma`` package) on the same loss as the proposed method (its value only;
@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from scenes.optim import GuardedAdam, reported_iterate
 from scenes.registry import int_at_least
 
 NAME = "bank_shot"
@@ -184,11 +185,8 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None) 
     unmollified = method == "baseline"
     events = events_of(model) if method == "proposed" else []
     v = torch.tensor(np.asarray(start, dtype=np.float64)[None], requires_grad=True)
-    opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)
-    history = {"loss": [], "distance": [], "wall": [], "floor": [], "accepted": [], "velocity": [],
-               "trajectory": [], "grad_norm": []}
-    accepted = None
-    lr = LEARNING_RATE
+    opt = GuardedAdam(v, LEARNING_RATE, ADAM_BETAS, GROWTH)
+    history = _history()
     reached = None
     t0 = time.perf_counter()
     for it in range(iters + 1):
@@ -199,14 +197,12 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None) 
         wall = banked(hits)
         if wall or method == "baseline":
             loss = _distance_loss(res)
-        elif accepted is None:
+        elif not opt.guarded:
             loss, _ = miss_loss(res)
         else:
-            loss = None  # left the wall: rejected below
-        if accepted is None and wall and method == "proposed":
-            opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)  # the miss loss' moments mean nothing here
-        phase_hit = wall and method == "proposed"
-        take = accepted is None or (loss is not None and (not phase_hit or float(loss.detach()) < accepted[1]))
+            loss = None  # left the wall: rejected
+        # the baseline has one phase (the distance throughout), never guarded
+        take = opt.judge(loss, wall and method == "proposed")
         history["loss"].append(float(loss.detach()) if loss is not None else float("nan"))
         history["distance"].append(dist)
         history["wall"].append(hits["wall"])
@@ -221,27 +217,16 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None) 
         if it == iters:
             history["grad_norm"].append(0.0)
             break
-        if take:
-            loss.backward()
-            if phase_hit:
-                if accepted is not None:
-                    lr = min(lr * GROWTH, LEARNING_RATE)
-                accepted = (v.detach().clone(), float(loss.detach()), v.grad.detach().clone())
-        else:
-            lr *= 0.5
-            with torch.no_grad():
-                v.copy_(accepted[0])
-            v.grad = accepted[2].clone()
-        history["grad_norm"].append(float(torch.linalg.norm(v.grad)))
-        for group in opt.param_groups:
-            group["lr"] = lr
-        opt.step()
+        history["grad_norm"].append(opt.step(loss, wall and method == "proposed", take))
         if callback is not None:
             callback(it, history)
-    last = len(history["loss"]) - 1
-    if reached is None and accepted is not None and not history["accepted"][-1]:
-        last = max(i for i, a in enumerate(history["accepted"]) if a)
+    last = reported_iterate(history["accepted"], reached, opt.guarded)
     return _result(history, last, reached, time.perf_counter() - t0)
+
+
+def _history() -> dict[str, list]:
+    return {"loss": [], "distance": [], "wall": [], "floor": [], "accepted": [], "velocity": [],
+            "trajectory": [], "grad_norm": []}
 
 
 def _result(history, last, reached, wall_time):
@@ -273,8 +258,7 @@ def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
         import cma
     except ImportError as exc:  # pragma: no cover - cma is a dependency
         raise RuntimeError("CMA-ES needs the 'cma' package (pip install cma)") from exc
-    history = {"loss": [], "distance": [], "wall": [], "floor": [], "accepted": [], "velocity": [],
-               "trajectory": [], "grad_norm": []}
+    history = _history()
     t0 = time.perf_counter()
     es = cma.CMAEvolutionStrategy(np.asarray(start, dtype=np.float64), CMA_SIGMA,
                                   {"seed": 1, "verbose": -9, "maxfevals": iters + 1})

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from scenes.optim import GuardedAdam, reported_iterate
 from scenes.registry import int_at_least
 
 NAME = "tunnel"
@@ -273,15 +274,13 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         raise ValueError(f"method must be 'proposed' or 'baseline', got {method!r}")
     unmollified = method == "baseline"
     v = torch.tensor(problem.v0[None], dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)
+    opt = GuardedAdam(v, LEARNING_RATE, ADAM_BETAS, HIT_GROWTH)
     tracker = BranchTracker(problem.tracked_slot)
     event = _event(problem.face, problem.window)
     v_scale = float(np.linalg.norm(problem.v_target))
     history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
                "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
     reached, stalled = None, False
-    accepted = None  # hit phase: (velocity, loss, gradient) of the last accepted iterate
-    lr = LEARNING_RATE
     t0 = time.perf_counter()
     for it in range(iters + 1):
         opt.zero_grad()
@@ -294,15 +293,12 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
             time_error = float(t_hit.detach()) - problem.t_target
             velocity_error = float(torch.linalg.norm(res.particle_qd[-1, 0].detach() - torch.as_tensor(problem.v_target))) / v_scale
             loss = _hit_loss(problem, res, t_hit, step)
-        elif accepted is None:
+        elif not opt.guarded:
             loss, root, w = _miss_loss(problem, res, tracker, unmollified)
         else:
             loss = None  # left the designated face's hits: rejected below
         done = good and abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE
-        if accepted is None and good:
-            opt = torch.optim.Adam([v], lr=LEARNING_RATE, betas=ADAM_BETAS)  # the miss loss' moments mean nothing here
-            lr = LEARNING_RATE
-        take = accepted is None or (good and float(loss.detach()) < accepted[1])
+        take = opt.judge(loss, good)
         history["loss"].append(float(loss.detach()) if loss is not None else float("nan"))
         history["hit"].append(t_hit is not None)
         history["time_error"].append(time_error)
@@ -326,29 +322,11 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         if it == iters:
             history["grad_norm"].append(0.0)
             break
-        if take:
-            loss.backward()
-            if good:
-                if accepted is not None:
-                    lr = min(lr * HIT_GROWTH, LEARNING_RATE)
-                accepted = (v.detach().clone(), float(loss.detach()), v.grad.detach().clone())
-        else:
-            # a step that left the designated face's hits or did not lower the loss: back to the
-            # accepted iterate, shorter step
-            lr *= 0.5
-            with torch.no_grad():
-                v.copy_(accepted[0])
-            v.grad = accepted[2].clone()
-        history["grad_norm"].append(float(torch.linalg.norm(v.grad)))
-        for group in opt.param_groups:
-            group["lr"] = lr
-        opt.step()
+        history["grad_norm"].append(opt.step(loss, good, take))
         if callback is not None:
             callback(it, history)
     hits = history["hit"]
-    last = len(hits) - 1
-    if reached is None and accepted is not None and not history["accepted"][-1]:
-        last = max(i for i, a in enumerate(history["accepted"]) if a)  # report the accepted iterate
+    last = reported_iterate(history["accepted"], reached, opt.guarded)
     return {
         "reached_target": reached is not None,
         "iterations_to_target": reached,

@@ -1,0 +1,82 @@
+"""The two-phase optimiser of the inverse scenes (``tunnel``, ``bank_shot``).
+
+Phase one (the miss): plain Adam on a lifted-event loss. Phase two, from the first iterate in
+the wanted contact region ("good": the designated face is hit, the shot banks): a fresh Adam
+whose iterates are *guarded*: one that leaves the region or does not lower the loss is rejected
+(back to the last accepted iterate and its gradient, half the step), an accepted one grows the
+step by ``growth`` up to the initial rate. The loss changes discontinuously where the contact
+set changes (a second contact, a neighbouring face), and a plain Adam step across such a
+boundary would never come back.
+"""
+
+from __future__ import annotations
+
+
+class GuardedAdam:
+    """Adam on one tensor ``v`` (requires grad) with the guarded second phase.
+
+    Per iteration: ``zero_grad()``, a rollout, ``take = judge(loss, good)``, then (unless the
+    loop stops) ``step(loss, good, take)``.
+
+    Args:
+        v: the optimised tensor.
+        lr: Adam's step, and the second phase's largest.
+        betas: Adam's moment decay rates.
+        growth: factor of the step after an accepted second-phase iterate.
+    """
+
+    def __init__(self, v, lr: float, betas, growth: float):
+        import torch
+
+        self._torch = torch
+        self.v, self.initial_lr, self.betas, self.growth = v, lr, betas, growth
+        self.lr = lr
+        self.opt = torch.optim.Adam([v], lr=lr, betas=betas)
+        self.accepted = None  # second phase: (v, loss, gradient) of the last accepted iterate
+
+    @property
+    def guarded(self) -> bool:
+        """Whether the second phase has started (misses are then rejected, not optimised)."""
+        return self.accepted is not None
+
+    def zero_grad(self) -> None:
+        self.opt.zero_grad()
+
+    def judge(self, loss, good: bool) -> bool:
+        """Whether the current iterate is taken (``loss`` a tensor, or None for no value). The
+        first good iterate starts the second phase with a fresh Adam (the first phase's moments
+        mean nothing for the new loss)."""
+        if self.accepted is None and good:
+            self.opt = self._torch.optim.Adam([self.v], lr=self.initial_lr, betas=self.betas)
+            self.lr = self.initial_lr
+        return self.accepted is None or (good and loss is not None and float(loss.detach()) < self.accepted[1])
+
+    def step(self, loss, good: bool, take: bool) -> float:
+        """Backward of a taken iterate (recorded as accepted in the second phase) or a return to
+        the accepted one; then the Adam step. Returns the norm of the gradient stepped along."""
+        torch = self._torch
+        if take:
+            loss.backward()
+            if good:
+                if self.accepted is not None:
+                    self.lr = min(self.lr * self.growth, self.initial_lr)
+                self.accepted = (self.v.detach().clone(), float(loss.detach()), self.v.grad.detach().clone())
+        else:
+            self.lr *= 0.5
+            with torch.no_grad():
+                self.v.copy_(self.accepted[0])
+            self.v.grad = self.accepted[2].clone()
+        grad_norm = float(torch.linalg.norm(self.v.grad))
+        for group in self.opt.param_groups:
+            group["lr"] = self.lr
+        self.opt.step()
+        return grad_norm
+
+
+def reported_iterate(accepted_flags: list[bool], reached, guarded: bool) -> int:
+    """Index of the iterate a run reports: the last one, or the last accepted one when the run
+    ended on a rejected second-phase step without reaching the target."""
+    last = len(accepted_flags) - 1
+    if reached is None and guarded and not accepted_flags[-1]:
+        last = max(i for i, a in enumerate(accepted_flags) if a)
+    return last
