@@ -39,13 +39,13 @@ def run_seed(args):
     import warp as wp
 
     wp.config.quiet = True
-    from scenes.tunnel import make_problem, optimise
+    from scenes.tunnel import METHODS, make_problem, optimise
 
     t0 = time.perf_counter()
     problem = make_problem(seed)
     make_time = time.perf_counter() - t0
     out = {"seed": seed, "make_time": make_time, "t_target": problem.t_target}
-    for method in ("proposed", "baseline"):
+    for method in METHODS:
         r = optimise(problem, iters, method)
         h = r.pop("history")
         grads = [g for g in h["grad_norm"] if g > 0.0]
@@ -155,6 +155,150 @@ def _median(values):
     return float(np.median(values)) if values else float("nan")
 
 
+def run_cloth(args):
+    """One (seed, method) of ``cloth_toss`` (a worker process): figures and the loss curve."""
+    seed, method, iters = args
+    import warp as wp
+
+    wp.config.quiet = True
+    from scenes import cloth_toss as C
+
+    r = C.optimise(C.build(seed), iters, method)
+    h = r.pop("history")
+    r["loss_curve"] = h["loss"]
+    grads = [g for g in h["grad_norm"] if g > 0.0]
+    r["median_grad_norm"] = float(np.median(grads)) if grads else 0.0
+    r["seconds_per_rollout"] = r["wall_time"] / max(r["rollouts"], 1)
+    return {"seed": seed, "method": method, **r}
+
+
+def profile_rollout(scene: str) -> dict:
+    """Forward (no tape), forward with tape and backward time [s] of one rollout of ``scene`` at
+    its seed-0 start, its mesh-contact substeps, and the process' peak resident memory [MiB]
+    (a fresh worker process, so the peak is this rollout's)."""
+    import resource
+
+    import torch
+    import warp as wp
+
+    wp.config.quiet = True
+    if scene == "cloth_toss":
+        from scenes import cloth_toss as C
+
+        problem = C.build(0)
+
+        def forward(grad):
+            u, res = C.simulate(problem, problem.u0, grad=grad)
+            return u, res, C.drape_loss(problem, res)
+    elif scene == "tunnel":
+        from scenes import tunnel as T
+
+        problem = T.make_problem(0)
+        event = T._event(problem.face, problem.window)
+
+        def forward(grad):
+            v, res = T._rollout(problem, problem.v_star, events=[event], grad=grad)
+            return v, res, (res.particle_qd[-1, 0] ** 2).sum() + res.event_roots.sum()
+    else:
+        raise ValueError(scene)
+    forward(True)[2].backward()  # compiles, warms the caches
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times = {"forward_s": [], "forward_taped_s": [], "backward_s": []}
+    for _ in range(3):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            forward(False)
+        times["forward_s"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        _, res, loss = forward(True)
+        t1 = time.perf_counter()
+        loss.backward()
+        times["forward_taped_s"].append(t1 - t0)
+        times["backward_s"].append(time.perf_counter() - t1)
+    out = {k: float(np.median(v)) for k, v in times.items()}
+    out["contact_substeps"] = int(res.stats["contact_substeps"])
+    out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    out["peak_rss_before_mib"] = rss_before / 1024.0
+    return out
+
+
+def cloth_toss(args) -> dict:
+    """``cloth_toss`` over seeds 0 .. cloth_seeds-1 with the three methods, same rollout budget."""
+    import multiprocessing as mp
+
+    from scenes import cloth_toss as C
+
+    C.build(0)
+    tasks = [(seed, method, args.cloth_iters) for seed in range(args.cloth_seeds) for method in C.METHODS]
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(args.jobs) as pool:
+        runs = list(pool.imap(run_cloth, tasks))
+        profile = pool.apply(profile_rollout, ("cloth_toss",))
+    total = time.perf_counter() - t0
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.jobs} worker(s)"
+    lines = [
+        f"# cloth_toss: seeds 0-{args.cloth_seeds - 1}, {args.cloth_iters} rollouts per method",
+        "",
+        f"Machine: {machine}; total wall time {total:.0f} s. Loss: the drape loss [m^2] (scenes/cloth_toss.py);",
+        f"success: the best iterate's loss cut by {100 * C.TARGET_CUT:.0f}% from the start's (a throw that lands beside the sphere).",
+        "",
+        "| seed | method | start loss | best loss | cut | rollouts to a 90% cut | wall time [s] | s per rollout | median grad norm | median contact substeps | fail-safe rollouts |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        lines.append(f"| {r['seed']} | {r['method']} | {r['initial_loss']:.4f} | {r['final_loss']:.4f} | "
+                     f"{100 * r['loss_cut']:.1f}% | {'-' if r['iterations_to_target'] is None else r['iterations_to_target'] + 1} | "
+                     f"{r['wall_time']:.0f} | {r['seconds_per_rollout']:.2f} | {r['median_grad_norm']:.3g} | "
+                     f"{r['median_contact_substeps']:.0f} | {r['failsafe_rollouts']} |")
+    lines += ["", "| method | seeds with a 90% cut | median cut | median rollouts to a 90% cut |", "|---|---|---|---|"]
+    summary = {}
+    for method in C.METHODS:
+        mine = [r for r in runs if r["method"] == method]
+        done = [r["iterations_to_target"] + 1 for r in mine if r["reached_target"]]
+        summary[method] = {"successes": len(done), "seeds": len(mine),
+                           "median_cut": float(np.median([r["loss_cut"] for r in mine])),
+                           "median_rollouts_to_target": _median(done)}
+        lines.append(f"| {method} | {len(done)}/{len(mine)} | {100 * summary[method]['median_cut']:.1f}% | "
+                     f"{'-' if not done else format(summary[method]['median_rollouts_to_target'], '.0f')} |")
+    lines += ["", "One rollout at seed 0's start (median of 3, a fresh worker):", "",
+              "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
+              "|---|---|---|---|---|",
+              (f"| {profile['forward_s']:.2f} | {profile['forward_taped_s']:.2f} | {profile['backward_s']:.2f} | "
+               f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
+    table = "\n".join(lines)
+    print()
+    print(table)
+    out = args.out + "_cloth_toss"
+    with open(out + ".md", "w") as f:
+        f.write(table + "\n")
+    with open(out + ".json", "w") as f:
+        json.dump({"machine": machine, "iters": args.cloth_iters, "summary": summary, "profile": profile,
+                   "runs": runs}, f)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(C.METHODS), figsize=(15, 4), sharey=True)
+    for ax, method in zip(axes, C.METHODS):
+        for r in runs:
+            if r["method"] == method:
+                curve = np.asarray(r["loss_curve"]) / r["initial_loss"]
+                ax.semilogy(np.arange(len(curve)), curve, label=f"seed {r['seed']}")
+        ax.axhline(1.0 - C.TARGET_CUT, color="grey", ls=":")
+        ax.set_title(method)
+        ax.set_xlabel("rollout")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("drape loss / start's")
+    axes[0].legend()
+    fig.suptitle("cloth_toss: initial linear and angular velocity of a cloth, draped over a sphere")
+    fig.tight_layout()
+    fig.savefig(out + ".png", dpi=120)
+    print(f"wrote {out}.md, .json, .png")
+    return {"runs": runs, "summary": summary}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=50, help="seeds 0 .. N-1 (default %(default)s)")
@@ -164,21 +308,26 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "inverse_tunnel"),
                         help="path prefix of the .md, .json and .png outputs")
     parser.add_argument("--curves", type=int, default=5, help="seeds whose loss curves the PNG shows")
-    parser.add_argument("--scenes", default="tunnel,bank_shot",
-                        help="comma-separated scenes to run: tunnel, bank_shot (default both)")
+    parser.add_argument("--scenes", default="tunnel,bank_shot,cloth_toss",
+                        help="comma-separated scenes to run: tunnel, bank_shot, cloth_toss (default all)")
+    parser.add_argument("--cloth-seeds", type=int, default=5, help="cloth_toss: seeds 0 .. N-1 (default %(default)s)")
+    parser.add_argument("--cloth-iters", type=int, default=40,
+                        help="cloth_toss: rollouts per method (default %(default)s)")
     parser.add_argument("--bank-iters", type=int, default=300,
                         help="bank_shot: iterations per method, Newton's included (default %(default)s)")
     args = parser.parse_args(argv)
-    for name in ("seeds", "iters", "jobs", "bank_iters"):
+    for name in ("seeds", "iters", "jobs", "bank_iters", "cloth_seeds", "cloth_iters"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")
     scenes = [x.strip() for x in args.scenes.split(",") if x.strip()]
-    if not scenes or any(x not in ("tunnel", "bank_shot") for x in scenes):
-        parser.error(f"--scenes must be a comma-separated subset of tunnel,bank_shot, got {args.scenes!r}")
+    if not scenes or any(x not in ("tunnel", "bank_shot", "cloth_toss") for x in scenes):
+        parser.error(f"--scenes must be a comma-separated subset of tunnel,bank_shot,cloth_toss, got {args.scenes!r}")
     if "tunnel" in scenes:
         tunnel(args)
     if "bank_shot" in scenes:
         bank_shot(args)
+    if "cloth_toss" in scenes:
+        cloth_toss(args)
 
 
 def tunnel(args) -> None:
@@ -194,31 +343,35 @@ def tunnel(args) -> None:
     t0 = time.perf_counter()
     tasks = [(seed, args.iters) for seed in range(args.seeds)]
     rows = []
-    header = (f"{'seed':>4s} | {'proposed':>8s} {'rollouts':>8s} {'1st hit':>7s} {'|dt| [s]':>9s} {'dv rel':>9s} "
-              f"{'wall [s]':>8s} | {'baseline':>8s} {'stalled':>7s} {'1st hit':>7s}")
+    header = (f"{'seed':>4s} | {'proposed':>8s} {'iters':>5s} {'1st hit':>7s} {'|dt| [s]':>9s} {'dv rel':>9s} "
+              f"{'wall [s]':>8s} | {'baseline':>8s} {'stalled':>7s} | {'cma':>5s} {'rollouts':>8s} {'wall [s]':>8s}")
     print(header)
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         for row in pool.imap(run_seed, tasks):
             rows.append(row)
-            p, b = row["proposed"], row["baseline"]
+            p, b, c = row["proposed"], row["baseline"], row["cma"]
             te = p["time_error"]
             ve = p["velocity_error"]
-            print(f"{row['seed']:>4d} | {p['reached_target']!s:>8s} {p['rollouts']:>8d} "
+            print(f"{row['seed']:>4d} | {p['reached_target']!s:>8s} {p['iterations']:>5d} "
                   f"{p['first_hit_iteration']!s:>7s} {abs(te) if te is not None else float('nan'):>9.2e} "
                   f"{ve if ve is not None else float('nan'):>9.2e} {p['wall_time']:>8.1f} | "
-                  f"{b['reached_target']!s:>8s} {b['stalled']!s:>7s} "
-                  f"{b['first_hit_iteration']!s:>7s}", flush=True)
+                  f"{b['reached_target']!s:>8s} {b['stalled']!s:>7s} | "
+                  f"{c['reached_target']!s:>5s} {c['rollouts']:>8d} {c['wall_time']:>8.1f}", flush=True)
+        profile = pool.apply(profile_rollout, ("tunnel",))
     total = time.perf_counter() - t0
 
     summary = {}
-    for method in ("proposed", "baseline"):
+    for method in ("proposed", "baseline", "cma"):
         runs = [r[method] for r in rows]
         reached = [r for r in runs if r["reached_target"]]
         summary[method] = {
             "success_rate": len(reached) / len(runs),
+            "successes": len(reached),
             "left_the_miss": sum(r["first_hit_iteration"] is not None for r in runs) / len(runs),
-            "median_rollouts_to_target": _median([r["iterations_to_target"] for r in reached]),
-            "max_rollouts_to_target": max((r["iterations_to_target"] for r in reached), default=None),
+            "median_iterations_to_target": _median([r["iterations_to_target"] for r in reached]),
+            "max_iterations_to_target": max((r["iterations_to_target"] for r in reached), default=None),
+            "median_rollouts_to_target": _median([r["rollouts_to_target"] for r in reached]),
+            "median_wall_time_to_target_s": _median([r["wall_time"] for r in reached]),
             "median_first_hit": _median([r["first_hit_iteration"] for r in runs]),
             "median_wall_time_s": _median([r["wall_time"] for r in runs]),
             "median_seconds_per_rollout": _median([r["seconds_per_rollout"] for r in runs]),
@@ -227,23 +380,34 @@ def tunnel(args) -> None:
         }
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.jobs} worker(s)"
     lines = [
-        f"# tunnel: {args.seeds} seeds, {args.iters} Adam iterations per method",
+        f"# tunnel: {args.seeds} seeds, {args.iters} iterations per method (CMA-ES: {args.iters} rollouts)",
         "",
         f"Machine: {machine}; total wall time {total:.0f} s. Success: |t - t_target| < 1e-6 s and final",
-        "velocity within 1e-3 relative. Rollouts count every simulation, rejected hit-phase steps included.",
+        "velocity within 1e-3 relative. Iterations are Adam steps (CMA-ES: rollouts); rollouts count every",
+        "simulation (phase one: the ghost's event rollout, plus the real one when the ghost is ready).",
         "",
-        ("| method | success | left the miss | median rollouts to target | max | median first hit | "
-         "median wall time [s] | s per rollout (fwd+bwd) | median grad norm | stalled (zero gradient) |"),
-        "|---|---|---|---|---|---|---|---|---|---|",
+        ("| method | success | left the miss | median iterations to target | max | median rollouts to target | "
+         "median first hit | median wall time to target [s] | s per rollout | median grad norm | stalled (zero gradient) |"),
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def fmt(x, spec):
+        return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
+
     for method, s in summary.items():
         lines.append(
-            f"| {method} | {100 * s['success_rate']:.0f}% | {100 * s['left_the_miss']:.0f}% | "
-            f"{s['median_rollouts_to_target']:.0f} | {s['max_rollouts_to_target']} | {s['median_first_hit']:.0f} | "
-            f"{s['median_wall_time_s']:.1f} | {s['median_seconds_per_rollout']:.3f} | {s['median_grad_norm']:.3g} | "
-            f"{s['stalled']} |")
+            f"| {method} | {s['successes']}/{len(rows)} ({100 * s['success_rate']:.0f}%) | {100 * s['left_the_miss']:.0f}% | "
+            f"{fmt(s['median_iterations_to_target'], '.0f')} | {fmt(s['max_iterations_to_target'], 'd')} | "
+            f"{fmt(s['median_rollouts_to_target'], '.0f')} | {fmt(s['median_first_hit'], '.0f')} | "
+            f"{fmt(s['median_wall_time_to_target_s'], '.1f')} | {s['median_seconds_per_rollout']:.3f} | "
+            f"{s['median_grad_norm']:.3g} | {s['stalled']} |")
     failed = [r["seed"] for r in rows if not r["proposed"]["reached_target"]]
-    lines += ["", f"Seeds the proposed method did not solve: {failed if failed else 'none'}."]
+    lines += ["", f"Seeds the proposed method did not solve: {failed if failed else 'none'}.",
+              "", "One rollout at seed 0's aimed shot with its event (median of 3, a fresh worker):", "",
+              "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
+              "|---|---|---|---|---|",
+              (f"| {profile['forward_s']:.3f} | {profile['forward_taped_s']:.3f} | {profile['backward_s']:.3f} | "
+               f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
     table = "\n".join(lines)
     print()
     print(table)
@@ -251,15 +415,16 @@ def tunnel(args) -> None:
     with open(args.out + ".md", "w") as f:
         f.write(table + "\n")
     with open(args.out + ".json", "w") as f:
-        json.dump({"machine": machine, "seeds": args.seeds, "iters": args.iters, "summary": summary, "runs": rows}, f)
+        json.dump({"machine": machine, "seeds": args.seeds, "iters": args.iters, "summary": summary,
+                   "profile": profile, "runs": rows}, f)
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for ax, method in zip(axes, ("proposed", "baseline")):
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4), sharey=True)
+    for ax, method in zip(axes, ("proposed", "baseline", "cma")):
         for row in rows[: args.curves]:
             curve = np.array([np.nan if x is None else x for x in row[method]["loss_curve"]], dtype=float)
             ax.semilogy(np.arange(len(curve)), curve, label=f"seed {row['seed']}")

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import GuardedAdam, reported_iterate
+from scenes.optim import GuardedAdam, parse_methods, reported_iterate, run_cma
 from scenes.registry import int_at_least
 
 NAME = "bank_shot"
@@ -254,41 +254,30 @@ def task_loss(model, v) -> tuple[float, Any]:
 
 
 def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
-    try:
-        import cma
-    except ImportError as exc:  # pragma: no cover - cma is a dependency
-        raise RuntimeError("CMA-ES needs the 'cma' package (pip install cma)") from exc
     history = _history()
     t0 = time.perf_counter()
-    es = cma.CMAEvolutionStrategy(np.asarray(start, dtype=np.float64), CMA_SIGMA,
-                                  {"seed": 1, "verbose": -9, "maxfevals": iters + 1})
-    best = (np.inf, None)
-    reached = None
-    while not es.stop() and reached is None and len(history["loss"]) < iters + 1:
-        xs = es.ask()
-        values = []
-        for x in xs:
-            if len(history["loss"]) >= iters + 1 or reached is not None:
-                values.append(np.inf)
-                continue
-            f, res = task_loss(model, x)
-            hits = bounces(res)
-            dist = distance(res)
-            history["loss"].append(f)
-            history["distance"].append(dist)
-            history["wall"].append(hits["wall"])
-            history["floor"].append(hits["floor"])
-            history["velocity"].append(np.asarray(x, dtype=np.float64).copy())
-            history["trajectory"].append(res.particle_q[:, 0].detach().numpy().copy())
-            history["grad_norm"].append(0.0)
-            take = f < best[0]
-            history["accepted"].append(bool(take))
-            if take:
-                best = (f, len(history["loss"]) - 1)
-            if banked(hits) and dist < TARGET_TOLERANCE:
-                reached = len(history["loss"]) - 1
-            values.append(f)
-        es.tell(xs, values)
+    best = [np.inf, None]
+
+    def evaluate(x):
+        f, res = task_loss(model, x)
+        hits = bounces(res)
+        dist = distance(res)
+        history["loss"].append(f)
+        history["distance"].append(dist)
+        history["wall"].append(hits["wall"])
+        history["floor"].append(hits["floor"])
+        history["velocity"].append(x)
+        history["trajectory"].append(res.particle_q[:, 0].detach().numpy().copy())
+        history["grad_norm"].append(0.0)
+        history["accepted"].append(bool(f < best[0]))
+        if f < best[0]:
+            best[:] = [f, len(history["loss"]) - 1]
+        return f, bool(banked(hits) and dist < TARGET_TOLERANCE)
+
+    run_cma(start, CMA_SIGMA, iters + 1, evaluate)
+    n = len(history["loss"])
+    reached = n - 1 if banked({"wall": history["wall"][-1], "floor": history["floor"][-1]}) \
+        and history["distance"][-1] < TARGET_TOLERANCE else None
     last = reached if reached is not None else best[1]
     return _result(history, last, reached, time.perf_counter() - t0)
 
@@ -323,14 +312,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated subset of {','.join(METHODS)} (default all)")
 
 
-def _methods(text: str) -> list[str]:
-    chosen = [m.strip() for m in text.split(",") if m.strip()]
-    bad = [m for m in chosen if m not in METHODS]
-    if bad or not chosen:
-        raise ValueError(f"--methods must be a comma-separated subset of {','.join(METHODS)}, got {text!r}")
-    return chosen
-
-
 def _log_world(log: Any, model) -> None:
     import rerun as rr
 
@@ -347,7 +328,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     (``/iterates/<method>/path``), the wall, the floor and the target."""
     import rerun as rr
 
-    methods = _methods(args.methods)
+    methods = parse_methods(args.methods, METHODS)
     model = build()
     _log_world(log, model)
     start = STARTS[args.start]

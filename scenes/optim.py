@@ -80,3 +80,34 @@ def reported_iterate(accepted_flags: list[bool], reached, guarded: bool) -> int:
     if reached is None and guarded and not accepted_flags[-1]:
         last = max(i for i, a in enumerate(accepted_flags) if a)
     return last
+
+
+def run_cma(x0, sigma: float, budget: int, evaluate) -> None:
+    """CMA-ES (the ``cma`` package, seed 1) from ``x0`` with initial step ``sigma``: asks for
+    candidates and calls ``evaluate(x) -> (value, reached)`` on each (one rollout, recorded by the
+    caller) until ``budget`` evaluations are spent or one has ``reached`` the target."""
+    import cma
+    import numpy as np
+
+    es = cma.CMAEvolutionStrategy(np.asarray(x0, dtype=np.float64), sigma,
+                                  {"seed": 1, "verbose": -9, "maxfevals": budget})
+    spent, reached = 0, False
+    while not es.stop() and not reached and spent < budget:
+        xs = es.ask()
+        values = []
+        for x in xs:
+            if spent >= budget or reached:
+                values.append(np.inf)  # unevaluated: CMA-ES needs a value for every candidate
+                continue
+            value, reached = evaluate(np.asarray(x, dtype=np.float64).copy())
+            spent += 1
+            values.append(value)
+        es.tell(xs, values)
+
+
+def parse_methods(text: str, methods) -> list[str]:
+    """The comma-separated ``--methods`` option as a list, each one of ``methods``."""
+    chosen = [m.strip() for m in text.split(",") if m.strip()]
+    if not chosen or any(m not in methods for m in chosen):
+        raise ValueError(f"--methods must be a comma-separated subset of {','.join(methods)}, got {text!r}")
+    return chosen

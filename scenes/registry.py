@@ -34,6 +34,7 @@ SCENES: dict[str, str] = {
     "grazing": "scenes.grazing",
     "tunnel": "scenes.tunnel",
     "bank_shot": "scenes.bank_shot",
+    "cloth_toss": "scenes.cloth_toss",
 }
 """Scene name -> module path."""
 

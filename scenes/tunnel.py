@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import GuardedAdam, reported_iterate
+from scenes.optim import GuardedAdam, reported_iterate, run_cma
 from scenes.registry import int_at_least
 
 NAME = "tunnel"
@@ -61,6 +61,11 @@ ADAM_BETAS = (0.9, 0.9)  # short second-moment memory: the miss loss' gradients 
 # of magnitude as the root comes in, and Adam's default 0.999 would keep the steps tiny for ~1000 iterations
 HIT_GROWTH = 1.5  # hit phase: the step grows by this after an accepted iterate, halves after a rejected one
 FACE_NORMAL_COSINE = 0.99  # a contact whose impulse is this parallel to the face's normal is on the face
+READY_STEPS = 0.2  # phase one ends when the ghost's root is this close to the target time [steps]
+# and inside the face, and the real rollout then hits the face
+METHODS = ("proposed", "baseline", "cma")
+MISS_OFFSET = 100.0  # CMA-ES: a rollout that does not hit the face costs this plus its event loss
+CMA_SIGMA = 0.2  # [m/s] CMA-ES' initial step
 HIT_MARGIN = 0.02  # barycentric margin the hit phase keeps from the face's edges (less if the target is closer)
 
 
@@ -90,8 +95,10 @@ class Problem:
     hit_margin: float = HIT_MARGIN  # barycentric margin of the hit phase's barrier (below the target's own)
 
 
-def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False):
-    """(initial velocity tensor, rollout result); ``v`` a (3,) array, or a (1, 3) tensor used as is."""
+def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, collisions=True):
+    """(initial velocity tensor, rollout result); ``v`` a (3,) array, or a (1, 3) tensor used as is.
+    ``collisions=False``: the *ghost* rollout (the particle passes through the tetrahedron; the
+    body alone moves as in any miss)."""
     import torch
 
     from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
@@ -102,7 +109,7 @@ def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False):
     else:
         x = torch.tensor(np.asarray(v, dtype=np.float64)[None], dtype=torch.float64, requires_grad=grad)
     kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
-    return x, rollout(model, STEPS, DT, 1, particle_qd=x, events=events, **kw)
+    return x, rollout(model, STEPS, DT, 1, particle_qd=x, events=events, collisions=collisions, **kw)
 
 
 def hit_time(res):
@@ -237,16 +244,21 @@ def _miss_loss(problem: Problem, res, tracker, unmollified: bool):
 
     tau = (problem.t_target - problem.window[0] * DT) / DT
     roots = res.event_roots[0] / DT
-    slot = tracker.update(roots)
+    slot = tracker.update(roots, target=tau)
     root, w = roots[slot], res.event_coords[0, slot]
     is_complex = bool(root[1].detach() != 0.0)
     if unmollified and is_complex:
         return None, root, w  # a real-roots-only simulator has no value here, let alone a gradient
     if is_complex:
         partner = next(k for k in range(3) if k != slot and float(roots[k, 1].detach()) == -float(root[1].detach()))
-        loss = complex_conjugate_loss(root, roots[partner], (tau, 0.0))
-    else:
-        loss = root_loss(root, (tau, 0.0))
+        re, im = float(root[0].detach()), float(root[1].detach())
+        # eq. complexconjugateloss. When the pair is nearer the real axis than the target time,
+        # first onto the axis where it is (t_L at the pair's real part: only the imaginary part
+        # remains): pulling the real part to the target as well slid such pairs along, complex,
+        # past the target (seeds 8 and 14 never split)
+        t_real = re if abs(im) < abs(re - tau) else tau
+        return complex_conjugate_loss(root, roots[partner], (t_real, 0.0)), root, w
+    loss = root_loss(root, (tau, 0.0))
     return loss + AIM_WEIGHT * ((w - 1.0 / 3.0) ** 2).sum(), root, w
 
 
@@ -264,14 +276,17 @@ def _hit_loss(problem: Problem, res, t_hit, step: int):
 
 
 def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None) -> dict[str, Any]:
-    """Adam on the initial velocity (see the module docstring). ``method``: "proposed" or
-    "baseline". Returns the figures of the run and its history (one entry per rollout)."""
+    """Adam on the initial velocity (see the module docstring). ``method``: "proposed",
+    "baseline" or "cma" (CMA-ES on :func:`task_loss` with ``iters`` rollouts). Returns the
+    figures of the run and its history (one entry per iteration)."""
     import torch
 
     from sim.events import BranchTracker
 
-    if method not in ("proposed", "baseline"):
-        raise ValueError(f"method must be 'proposed' or 'baseline', got {method!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "cma":
+        return _optimise_cma(problem, iters)
     unmollified = method == "baseline"
     v = torch.tensor(problem.v0[None], dtype=torch.float64, requires_grad=True)
     opt = GuardedAdam(v, LEARNING_RATE, ADAM_BETAS, HIT_GROWTH)
@@ -281,22 +296,38 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
                "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
     reached, stalled = None, False
+    tau = (problem.t_target - problem.window[0] * DT) / DT  # the hit time in the event's units
+    rollouts = 0
     t0 = time.perf_counter()
     for it in range(iters + 1):
         opt.zero_grad()
-        _, res = _rollout(problem, v, events=[event], unmollified=unmollified)
-        t_hit, step = hit_time(res)
-        good = t_hit is not None and on_designated_face(problem, res, step)
+        t_hit = step = root = w = None
+        good = False
+        if not opt.guarded:
+            # phase one: the ghost's lifted event (the particle passes through the body, so the
+            # event stays the free flight's whatever the real particle hits)
+            _, res = _rollout(problem, v, events=[event], unmollified=unmollified, collisions=False)
+            rollouts += 1
+            loss, root, w = _miss_loss(problem, res, tracker, unmollified)
+            r = root.detach().numpy()
+            if r[1] == 0.0 and abs(r[0] - tau) < READY_STEPS and float(w.detach().min()) > 0.0:
+                # the ghost meets the face's inside at the target time: does the real particle?
+                _, real = _rollout(problem, v, unmollified=unmollified)
+                rollouts += 1
+                t_hit, step = hit_time(real)
+                if t_hit is not None and on_designated_face(problem, real, step):
+                    res, good = real, True
+        else:
+            _, res = _rollout(problem, v, unmollified=unmollified)
+            rollouts += 1
+            t_hit, step = hit_time(res)
+            good = t_hit is not None and on_designated_face(problem, res, step)
+            loss = None  # left the designated face's hits: rejected below
         time_error = velocity_error = float("nan")
-        root = w = None
         if good:
             time_error = float(t_hit.detach()) - problem.t_target
             velocity_error = float(torch.linalg.norm(res.particle_qd[-1, 0].detach() - torch.as_tensor(problem.v_target))) / v_scale
             loss = _hit_loss(problem, res, t_hit, step)
-        elif not opt.guarded:
-            loss, root, w = _miss_loss(problem, res, tracker, unmollified)
-        else:
-            loss = None  # left the designated face's hits: rejected below
         done = good and abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE
         take = opt.judge(loss, good)
         history["loss"].append(float(loss.detach()) if loss is not None else float("nan"))
@@ -325,8 +356,71 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         history["grad_norm"].append(opt.step(loss, good, take))
         if callback is not None:
             callback(it, history)
-    hits = history["hit"]
     last = reported_iterate(history["accepted"], reached, opt.guarded)
+    return _result(history, last, reached, stalled, rollouts, time.perf_counter() - t0)
+
+
+def task_loss(problem: Problem, v) -> tuple[float, dict]:
+    """The proposed method's loss as a plain value of ``v`` (3,) [m/s] alone, for CMA-ES (one
+    rollout): the hit loss when the designated face is hit, else ``MISS_OFFSET`` plus the lifted
+    event's loss of the root nearest the target time (no branch history: a function of ``v``).
+    Returns (loss, figures: hit, on_face, time_error, velocity_error, trajectory)."""
+    import torch
+
+    from sim.events import root_loss
+
+    with torch.no_grad():
+        _, res = _rollout(problem, np.asarray(v, dtype=np.float64), events=[_event(problem.face, problem.window)])
+        t_hit, step = hit_time(res)
+        good = t_hit is not None and on_designated_face(problem, res, step)
+        figures = {"hit": t_hit is not None, "on_face": bool(good), "time_error": float("nan"),
+                   "velocity_error": float("nan"), "trajectory": res.particle_q[:, 0].numpy().copy()}
+        if good:
+            figures["time_error"] = float(t_hit) - problem.t_target
+            figures["velocity_error"] = float(np.linalg.norm(res.particle_qd[-1, 0].numpy() - problem.v_target)
+                                              / np.linalg.norm(problem.v_target))
+            return float(_hit_loss(problem, res, t_hit, step)), figures
+        tau = (problem.t_target - problem.window[0] * DT) / DT
+        roots = res.event_roots[0] / DT
+        coords = res.event_coords[0]
+        miss = min(float(root_loss(roots[k], (tau, 0.0)) + AIM_WEIGHT * ((coords[k] - 1.0 / 3.0) ** 2).sum())
+                   for k in range(3))
+        return MISS_OFFSET + miss, figures
+
+
+def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
+    """CMA-ES on :func:`task_loss` from the start, ``iters + 1`` rollouts (as many as Adam's)."""
+    history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
+               "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
+    t0 = time.perf_counter()
+    best = [np.inf, 0]
+
+    def evaluate(x):
+        f, fig = task_loss(problem, x)
+        for key in ("hit", "on_face", "time_error", "velocity_error", "trajectory"):
+            history[key].append(fig[key])
+        history["loss"].append(f)
+        history["velocity"].append(x)
+        history["grad_norm"].append(0.0)
+        history["root"].append(None)
+        history["coords"].append(None)
+        history["accepted"].append(bool(f < best[0]))
+        if f < best[0]:
+            best[:] = [f, len(history["loss"]) - 1]
+        return f, bool(fig["on_face"] and abs(fig["time_error"]) < TIME_TOLERANCE
+                       and fig["velocity_error"] < VELOCITY_TOLERANCE)
+
+    run_cma(problem.v0, CMA_SIGMA, iters + 1, evaluate)
+    n = len(history["loss"])
+    done = history["on_face"][-1] and abs(history["time_error"][-1]) < TIME_TOLERANCE \
+        and history["velocity_error"][-1] < VELOCITY_TOLERANCE
+    reached = n - 1 if done else None
+    return _result(history, reached if done else best[1], reached, False, n, time.perf_counter() - t0)
+
+
+def _result(history, last: int, reached, stalled: bool, rollouts: int, wall_time: float) -> dict[str, Any]:
+    """The figures of a run, reported at iterate ``last``."""
+    hits = history["hit"]
     return {
         "reached_target": reached is not None,
         "iterations_to_target": reached,
@@ -336,8 +430,10 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         "hit": hits[last],
         "first_hit_iteration": int(np.argmax(hits)) if any(hits) else None,
         "stalled": stalled,
-        "rollouts": len(hits),
-        "wall_time": time.perf_counter() - t0,
+        "rollouts": rollouts,
+        "rollouts_to_target": rollouts if reached is not None else None,
+        "iterations": len(hits),
+        "wall_time": wall_time,
         "history": history,
     }
 

@@ -236,7 +236,9 @@ class BranchTracker:
     sign (``q`` crosses 0), when the single real root switches between ``t+`` and ``t-`` (``c^``
     changes sign), and when the tracked root merges with another into a complex pair (the
     larger real root goes on as the member with positive imaginary part, the smaller as the
-    negative one) or a pair splits back (positive imaginary part -> the larger real root).
+    negative one) or a pair splits back (positive imaginary part -> the larger real root; with a
+    ``target`` time given to :meth:`update`, the one nearer the target: an optimiser wants the root
+    it can move there, and the other one may merge again right away).
 
     Args:
         slot: the slot tracked at the start (design.md: 0 ``t-``, 1 ``tM``, 2 ``t+``).
@@ -250,8 +252,10 @@ class BranchTracker:
         self.slot = slot
         self.previous = None  # (re, im) of the tracked root at the last update
 
-    def update(self, roots) -> int:
-        """The slot of the tracked root among ``roots`` (3, 2) (numpy or torch, one event)."""
+    def update(self, roots, target: float | None = None) -> int:
+        """The slot of the tracked root among ``roots`` (3, 2) (numpy or torch, one event);
+        ``target``: the time a loss pulls the root to (same units), which picks the member of a
+        pair that splits."""
         r = np.asarray(roots.detach().cpu().numpy() if hasattr(roots, "detach") else roots, dtype=np.float64)
         if self.previous is None:
             self.previous = r[self.slot].copy()
@@ -274,7 +278,10 @@ class BranchTracker:
         elif im0 != 0.0 and r[nearest, 1] == 0.0:
             # a pair split: +Im goes on as the larger of the two new real roots, -Im the smaller
             pair = sorted(sorted(finite, key=lambda k: abs(r[k, 0] - re0))[:2], key=lambda k: r[k, 0])
-            nearest = pair[-1] if im0 > 0.0 else pair[0]
+            if target is not None:
+                nearest = min(pair, key=lambda k: abs(r[k, 0] - target))
+            else:
+                nearest = pair[-1] if im0 > 0.0 else pair[0]
         self.slot = nearest
         self.previous = r[self.slot].copy()
         return self.slot

@@ -111,8 +111,13 @@ def test_cli_reports_all_methods(tmp_path):
 
 
 def test_bad_methods_option_is_rejected():
+    from scenes.optim import parse_methods
+
     with pytest.raises(ValueError, match="--methods"):
-        B._methods("proposed,newton")
+        parse_methods("proposed,newton", B.METHODS)
+    with pytest.raises(ValueError, match="--methods"):
+        parse_methods(" , ", B.METHODS)
+    assert parse_methods("cma, proposed", B.METHODS) == ["cma", "proposed"]
 
 
 def test_inverse_benchmark_bank_shot_smoke(tmp_path):

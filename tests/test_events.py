@@ -137,6 +137,11 @@ def test_branch_tracker_merge_split_and_escaping_sign_flip():
         # and the pair splits back: +Im -> the larger real root
         s = tracker.update(np.array([[-1.0, 0.0], [0.31, 0.0], [0.34, 0.0]]))
         assert s == slot
+    # with a target time, a splitting pair goes on as the real root nearer the target
+    for target, expected in ((0.0, 1), (1.0, 2)):
+        tracker = BranchTracker(2)
+        tracker.update(np.array([[-1.0, 0.0], [0.325, -0.01], [0.325, 0.01]]))
+        assert tracker.update(np.array([[-1.0, 0.0], [0.31, 0.0], [0.34, 0.0]]), target=target) == expected
     # the escaping root changes sign (q crosses 0): followed into the other slot
     tracker = BranchTracker(2)
     tracker.update(np.array([[0.2, 0.0], [0.5, 0.0], [1e150, 0.0]]))

@@ -65,6 +65,41 @@ def test_proposed_reaches_the_target_baseline_cannot_leave_the_miss(problem):
     assert np.all(np.asarray(baseline["history"]["velocity"]) == problem.v0)
 
 
+def test_phase_one_ghost_passes_through_and_keeps_the_event_of_free_flight(problem):
+    """Phase one's rollout has no mesh collisions: at the aimed shot the real particle bounces,
+    the ghost flies on, and the ghost's event root is the real one's (the window ends before
+    the hit)."""
+    from scenes.tunnel import DT, _event, _rollout
+
+    event = _event(problem.face, problem.window)
+    _, ghost = _rollout(problem, problem.v_star, events=[event], collisions=False)
+    _, real = _rollout(problem, problem.v_star, events=[event])
+    assert ghost.stats["contact_substeps"] == 0 and real.stats["contact_substeps"] == 1
+    qd = ghost.particle_qd[:, 0].numpy()
+    assert np.all(qd == qd[0])  # free flight, no gravity
+    tau = (problem.t_target - problem.window[0] * DT)
+    assert np.min(np.abs(ghost.event_roots[0, :, 0].numpy() - tau)) < 0.5 * DT  # linearised over the window
+    assert np.array_equal(ghost.event_roots.numpy(), real.event_roots.numpy())
+
+
+def test_cma_task_loss_is_zero_at_the_aimed_shot_and_large_at_the_miss(problem):
+    from scenes.tunnel import MISS_OFFSET, task_loss
+
+    hit, figures = task_loss(problem, problem.v_star)
+    assert hit < 1e-20 and figures["on_face"] and abs(figures["time_error"]) < 1e-12
+    miss, figures = task_loss(problem, problem.v0)
+    assert miss >= MISS_OFFSET and not figures["hit"]
+
+
+def test_a_far_miss_splits_its_complex_pair_first_and_reaches_the_target():
+    """Seed 8: the wanted root starts as a complex pair at 3.7x the target time, past the point
+    where it merged. Pulling its real part to the target slid the pair along, complex, for 500
+    iterations; the proposed loss first splits it where it is, then moves the real root."""
+    far = make_problem(8)
+    result = optimise(far, 500, "proposed")
+    assert result["reached_target"], (result["time_error"], result["velocity_error"])
+
+
 def test_cli_reports_both_methods(tmp_path):
     out = tmp_path / "tunnel.rrd"
     proc = subprocess.run([sys.executable, "-m", "scenes", "tunnel", "--out", str(out), "--iters", "3"],
@@ -88,7 +123,7 @@ def test_inverse_benchmark_smoke(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "inverse.json").read_text())
-    assert set(data["summary"]) == {"proposed", "baseline"}
+    assert set(data["summary"]) == {"proposed", "baseline", "cma"}
     assert data["runs"][0]["baseline"]["stalled"] is True
     assert (tmp_path / "inverse.png").stat().st_size > 0
     assert "| proposed |" in (tmp_path / "inverse.md").read_text()
