@@ -258,6 +258,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         h = result.pop("history")
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]),
                         sequence={"iteration": np.arange(len(h["loss"]))})
+        rec.reset_time()  # the previous method's frame timeline must not stick to these
         for i, final in enumerate(h["final"]):
             rec.set_time("iteration", sequence=i)
             rec.log(f"/iterates/{method}/cloth", rr.Mesh3D(vertex_positions=final, triangle_indices=tris,
