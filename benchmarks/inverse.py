@@ -119,19 +119,8 @@ def bank_shot(args) -> dict:
     for name, c in checks.items():
         lines.append(f"| {name} | {np.round(c['analytic'], 4).tolist()} | {np.round(c['numeric'], 4).tolist()} | "
                      f"{c['relative_error']:.2e} |")
-    table = "\n".join(lines)
-    print()
-    print(table)
     out = args.out + "_bank_shot"
-    with open(out + ".md", "w") as f:
-        f.write(table + "\n")
-    with open(out + ".json", "w") as f:
-        json.dump({"iters": args.bank_iters, "runs": ours + newton, "gradient_checks": checks}, f)
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _write_outputs(out, lines, {"iters": args.bank_iters, "runs": ours + newton, "gradient_checks": checks})
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, start in zip(axes, ("newton", "miss")):
@@ -148,6 +137,35 @@ def bank_shot(args) -> dict:
     fig.savefig(out + ".png", dpi=120)
     print(f"wrote {out}.md, .json, .png")
     return {"runs": ours + newton, "gradient_checks": checks}
+
+
+def _write_outputs(out: str, lines: list[str], data: dict):
+    """Prints the table ``lines``, writes ``<out>.md`` and ``<out>.json`` (``data``); returns
+    ``matplotlib.pyplot`` (Agg backend) for the caller's ``<out>.png``."""
+    table = "\n".join(lines)
+    print()
+    print(table)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    with open(out + ".md", "w") as f:
+        f.write(table + "\n")
+    with open(out + ".json", "w") as f:
+        json.dump(data, f)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _profile_lines(profile: dict, caption: str, digits: int) -> list[str]:
+    """The table rows of :func:`profile_rollout`'s figures."""
+    f = f".{digits}f"
+    return ["", caption, "",
+            "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
+            "|---|---|---|---|---|",
+            (f"| {profile['forward_s']:{f}} | {profile['forward_taped_s']:{f}} | {profile['backward_s']:{f}} | "
+             f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
 
 
 def _median(values):
@@ -202,7 +220,6 @@ def profile_rollout(scene: str) -> dict:
     else:
         raise ValueError(scene)
     forward(True)[2].backward()  # compiles, warms the caches
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times = {"forward_s": [], "forward_taped_s": [], "backward_s": []}
     for _ in range(3):
         t0 = time.perf_counter()
@@ -218,7 +235,6 @@ def profile_rollout(scene: str) -> dict:
     out = {k: float(np.median(v)) for k, v in times.items()}
     out["contact_substeps"] = int(res.stats["contact_substeps"])
     out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    out["peak_rss_before_mib"] = rss_before / 1024.0
     return out
 
 
@@ -260,25 +276,10 @@ def cloth_toss(args) -> dict:
                            "median_rollouts_to_target": _median(done)}
         lines.append(f"| {method} | {len(done)}/{len(mine)} | {100 * summary[method]['median_cut']:.1f}% | "
                      f"{'-' if not done else format(summary[method]['median_rollouts_to_target'], '.0f')} |")
-    lines += ["", "One rollout at seed 0's start (median of 3, a fresh worker):", "",
-              "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
-              "|---|---|---|---|---|",
-              (f"| {profile['forward_s']:.2f} | {profile['forward_taped_s']:.2f} | {profile['backward_s']:.2f} | "
-               f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
-    table = "\n".join(lines)
-    print()
-    print(table)
+    lines += _profile_lines(profile, "One rollout at seed 0's start (median of 3, a fresh worker):", 2)
     out = args.out + "_cloth_toss"
-    with open(out + ".md", "w") as f:
-        f.write(table + "\n")
-    with open(out + ".json", "w") as f:
-        json.dump({"machine": machine, "iters": args.cloth_iters, "summary": summary, "profile": profile,
-                   "runs": runs}, f)
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _write_outputs(out, lines, {"machine": machine, "iters": args.cloth_iters, "summary": summary,
+                                      "profile": profile, "runs": runs})
 
     fig, axes = plt.subplots(1, len(C.METHODS), figsize=(15, 4), sharey=True)
     for ax, method in zip(axes, C.METHODS):
@@ -402,26 +403,10 @@ def tunnel(args) -> None:
             f"{fmt(s['median_wall_time_to_target_s'], '.1f')} | {s['median_seconds_per_rollout']:.3f} | "
             f"{s['median_grad_norm']:.3g} | {s['stalled']} |")
     failed = [r["seed"] for r in rows if not r["proposed"]["reached_target"]]
-    lines += ["", f"Seeds the proposed method did not solve: {failed if failed else 'none'}.",
-              "", "One rollout at seed 0's aimed shot with its event (median of 3, a fresh worker):", "",
-              "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
-              "|---|---|---|---|---|",
-              (f"| {profile['forward_s']:.3f} | {profile['forward_taped_s']:.3f} | {profile['backward_s']:.3f} | "
-               f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
-    table = "\n".join(lines)
-    print()
-    print(table)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out + ".md", "w") as f:
-        f.write(table + "\n")
-    with open(args.out + ".json", "w") as f:
-        json.dump({"machine": machine, "seeds": args.seeds, "iters": args.iters, "summary": summary,
-                   "profile": profile, "runs": rows}, f)
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    lines += ["", f"Seeds the proposed method did not solve: {failed if failed else 'none'}."]
+    lines += _profile_lines(profile, "One rollout at seed 0's aimed shot with its event (median of 3, a fresh worker):", 3)
+    plt = _write_outputs(args.out, lines, {"machine": machine, "seeds": args.seeds, "iters": args.iters,
+                                           "summary": summary, "profile": profile, "runs": rows})
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4), sharey=True)
     for ax, method in zip(axes, ("proposed", "baseline", "cma")):

@@ -258,11 +258,13 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         h = result.pop("history")
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]),
                         sequence={"iteration": np.arange(len(h["loss"]))})
+        # topology static, positions per iterate (and per frame below)
+        rec.log(f"/iterates/{method}/cloth", rr.Mesh3D.from_fields(triangle_indices=tris, albedo_factor=colors[method]),
+                static=True)
         rec.reset_time()  # the previous method's frame timeline must not stick to these
         for i, final in enumerate(h["final"]):
             rec.set_time("iteration", sequence=i)
-            rec.log(f"/iterates/{method}/cloth", rr.Mesh3D(vertex_positions=final, triangle_indices=tris,
-                                                           albedo_factor=colors[method]))
+            rec.log(f"/iterates/{method}/cloth", rr.Mesh3D.from_fields(vertex_positions=final))
         with torch.no_grad():
             _, res = simulate(problem, np.asarray(result["best_u"]))
         rec.log(f"/best/{method}/cloth", rr.Mesh3D.from_fields(triangle_indices=tris, albedo_factor=colors[method]),

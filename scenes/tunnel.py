@@ -236,13 +236,34 @@ def hit_coordinates(problem: Problem, res, step: int, t_hit):
     return _coordinates(torch.tensor([False]), torch.cat([point[None], corners])[None])[0]
 
 
+def _event_time(problem: Problem) -> float:
+    """The target hit time in the event's units (steps from the window's start)."""
+    return (problem.t_target - problem.window[0] * DT) / DT
+
+
+def _hit_errors(problem: Problem, res, t_hit) -> tuple[float, float]:
+    """(hit time error [s], relative error of the final velocity) of a hit of the face."""
+    v_final = res.particle_qd[-1, 0].detach().numpy()
+    return (float(t_hit.detach()) - problem.t_target,
+            float(np.linalg.norm(v_final - problem.v_target) / np.linalg.norm(problem.v_target)))
+
+
+def _at_target(time_error: float, velocity_error: float) -> bool:
+    return abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE
+
+
+def _history() -> dict[str, list]:
+    return {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
+            "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
+
+
 def _miss_loss(problem: Problem, res, tracker, unmollified: bool):
     """The lifted event's loss while the rollout misses (see the module docstring), or None when
     it has nothing to give (the baseline at a complex root). Returns (loss, root, coordinates)."""
 
     from sim.events import complex_conjugate_loss, root_loss
 
-    tau = (problem.t_target - problem.window[0] * DT) / DT
+    tau = _event_time(problem)
     roots = res.event_roots[0] / DT
     slot = tracker.update(roots, target=tau)
     root, w = roots[slot], res.event_coords[0, slot]
@@ -292,11 +313,9 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     opt = GuardedAdam(v, LEARNING_RATE, ADAM_BETAS, HIT_GROWTH)
     tracker = BranchTracker(problem.tracked_slot)
     event = _event(problem.face, problem.window)
-    v_scale = float(np.linalg.norm(problem.v_target))
-    history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
-               "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
+    history = _history()
     reached, stalled = None, False
-    tau = (problem.t_target - problem.window[0] * DT) / DT  # the hit time in the event's units
+    tau = _event_time(problem)
     rollouts = 0
     t0 = time.perf_counter()
     for it in range(iters + 1):
@@ -325,10 +344,9 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
             loss = None  # left the designated face's hits: rejected below
         time_error = velocity_error = float("nan")
         if good:
-            time_error = float(t_hit.detach()) - problem.t_target
-            velocity_error = float(torch.linalg.norm(res.particle_qd[-1, 0].detach() - torch.as_tensor(problem.v_target))) / v_scale
+            time_error, velocity_error = _hit_errors(problem, res, t_hit)
             loss = _hit_loss(problem, res, t_hit, step)
-        done = good and abs(time_error) < TIME_TOLERANCE and velocity_error < VELOCITY_TOLERANCE
+        done = good and _at_target(time_error, velocity_error)
         take = opt.judge(loss, good)
         history["loss"].append(float(loss.detach()) if loss is not None else float("nan"))
         history["hit"].append(t_hit is not None)
@@ -376,11 +394,9 @@ def task_loss(problem: Problem, v) -> tuple[float, dict]:
         figures = {"hit": t_hit is not None, "on_face": bool(good), "time_error": float("nan"),
                    "velocity_error": float("nan"), "trajectory": res.particle_q[:, 0].numpy().copy()}
         if good:
-            figures["time_error"] = float(t_hit) - problem.t_target
-            figures["velocity_error"] = float(np.linalg.norm(res.particle_qd[-1, 0].numpy() - problem.v_target)
-                                              / np.linalg.norm(problem.v_target))
+            figures["time_error"], figures["velocity_error"] = _hit_errors(problem, res, t_hit)
             return float(_hit_loss(problem, res, t_hit, step)), figures
-        tau = (problem.t_target - problem.window[0] * DT) / DT
+        tau = _event_time(problem)
         roots = res.event_roots[0] / DT
         coords = res.event_coords[0]
         miss = min(float(root_loss(roots[k], (tau, 0.0)) + AIM_WEIGHT * ((coords[k] - 1.0 / 3.0) ** 2).sum())
@@ -390,10 +406,9 @@ def task_loss(problem: Problem, v) -> tuple[float, dict]:
 
 def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
     """CMA-ES on :func:`task_loss` from the start, ``iters + 1`` rollouts (as many as Adam's)."""
-    history = {"loss": [], "hit": [], "time_error": [], "velocity_error": [], "grad_norm": [], "velocity": [],
-               "accepted": [], "on_face": [], "trajectory": [], "root": [], "coords": []}
+    history = _history()
     t0 = time.perf_counter()
-    best = [np.inf, 0]
+    best, reached = [np.inf, 0], [None]
 
     def evaluate(x):
         f, fig = task_loss(problem, x)
@@ -407,15 +422,13 @@ def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
         history["accepted"].append(bool(f < best[0]))
         if f < best[0]:
             best[:] = [f, len(history["loss"]) - 1]
-        return f, bool(fig["on_face"] and abs(fig["time_error"]) < TIME_TOLERANCE
-                       and fig["velocity_error"] < VELOCITY_TOLERANCE)
+        if fig["on_face"] and _at_target(fig["time_error"], fig["velocity_error"]):
+            reached[0] = len(history["loss"]) - 1
+        return f, reached[0] is not None
 
     run_cma(problem.v0, CMA_SIGMA, iters + 1, evaluate)
-    n = len(history["loss"])
-    done = history["on_face"][-1] and abs(history["time_error"][-1]) < TIME_TOLERANCE \
-        and history["velocity_error"][-1] < VELOCITY_TOLERANCE
-    reached = n - 1 if done else None
-    return _result(history, reached if done else best[1], reached, False, n, time.perf_counter() - t0)
+    last = best[1] if reached[0] is None else reached[0]
+    return _result(history, last, reached[0], False, len(history["loss"]), time.perf_counter() - t0)
 
 
 def _result(history, last: int, reached, stalled: bool, rollouts: int, wall_time: float) -> dict[str, Any]:
