@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/sim.py
 	$(PY) benchmarks/rollout.py
 	$(PY) benchmarks/grazing.py
+	$(PY) benchmarks/orthogonal_clamp.py
 	$(PY) benchmarks/inverse.py
 
 fuzz: $(STAMP)

@@ -1,7 +1,7 @@
 """Inverse control with lifted events: the ``tunnel`` scene over many seeds, proposed vs baseline.
 
     python benchmarks/inverse.py [--seeds 50] [--iters 500] [--jobs 2] [--scenes tunnel,bank_shot]
-                                 [--bank-iters 300] [--out benchmarks/results/inverse_tunnel]
+                                 [--bank-iters 300] [--bank-seeds 5] [--out benchmarks/results/inverse_tunnel]
 
 ``bank_shot`` (:mod:`scenes.bank_shot`, Newton's ``diffsim_ball`` problem): both starts with the
 proposed method, the baseline and CMA-ES, then Newton 1.8's own example (:mod:`newton_ball`,
@@ -66,7 +66,9 @@ def run_bank_shot(args):
     from scenes import bank_shot as B
 
     model = B.build()
-    r = B.optimise(model, B.STARTS[start], iters, method)
+    velocity = B.seeded_start(model, int(start[len("seed "):])) if start.startswith("seed ") else B.STARTS[start]
+    r = B.optimise(model, velocity, iters, method)
+    r["start_velocity"] = list(velocity)
     h = r.pop("history")
     r["seconds_per_rollout"] = r["wall_time"] / max(r["rollouts"], 1)
     r["distance_curve"] = h["distance"]
@@ -83,9 +85,11 @@ def bank_shot(args) -> dict:
     from scenes import bank_shot as B
 
     B.build()
-    tasks = [(start, method, args.bank_iters) for start in ("newton", "miss") for method in B.METHODS]
+    starts = ["newton", "miss"] + [f"seed {k}" for k in range(args.bank_seeds)]
+    tasks = [(start, method, args.bank_iters) for start in starts for method in B.METHODS]
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         ours = list(pool.imap(run_bank_shot, tasks))
+        profile = pool.apply(profile_rollout, ("bank_shot",))
     # Newton after the pool, alone on the machine (its wall time is not shared with our workers)
     import newton_ball
 
@@ -115,12 +119,25 @@ def bank_shot(args) -> dict:
         bounces = f"{r.get('floor_bounces', '-')}/{r.get('wall_bounces', '-')}"
         lines.append(f"| {r['start']} | {r['method']} | {r['reached_target']} | {r['iterations_to_target']} | "
                      f"{r['final_distance']:.4f} | {bounces} | {r['wall_time']:.1f} | {r['seconds_per_rollout']:.3f} |")
+    seeded = [r for r in ours if r["start"].startswith("seed ")]
+    if seeded:
+        caption = (f"Seeded misses (`--start seeded --seed 0..{args.bank_seeds - 1}`, drawn by "
+                   "`bank_shot.seeded_start`):")
+        lines += ["", caption, "", "| method | reached | median rollouts to target |", "|---|---|---|"]
+        for method in B.METHODS:
+            runs = [r for r in seeded if r["method"] == method]
+            hits = [r["iterations_to_target"] for r in runs if r["reached_target"]]
+            median = f"{np.median(hits):.0f}" if hits else "-"
+            lines.append(f"| {method} | {len(hits)}/{len(runs)} | {median} |")
+    lines += _profile_lines(profile, "One rollout from Newton's start (36 frames x 8 substeps, the proposed method's "
+                            "lifted events included), alone in a fresh worker:", 3)
     lines += ["", "| gradient check | analytic | central differences | relative error |", "|---|---|---|---|"]
     for name, c in checks.items():
         lines.append(f"| {name} | {np.round(c['analytic'], 4).tolist()} | {np.round(c['numeric'], 4).tolist()} | "
                      f"{c['relative_error']:.2e} |")
-    out = args.out + "_bank_shot"
-    plt = _write_outputs(out, lines, {"iters": args.bank_iters, "runs": ours + newton, "gradient_checks": checks})
+    out = _scene_prefix(args, "bank_shot")
+    plt = _write_outputs(out, lines, {"iters": args.bank_iters, "runs": ours + newton, "gradient_checks": checks,
+                                      "profile": profile})
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, start in zip(axes, ("newton", "miss")):
@@ -158,14 +175,21 @@ def _write_outputs(out: str, lines: list[str], data: dict):
     return plt
 
 
+def _scene_prefix(args, scene: str) -> str:
+    """Output prefix of ``scene``: ``--out`` (tunnel's, default ``results/inverse_tunnel``) with
+    its ``_tunnel`` suffix replaced by the scene's name."""
+    base = args.out[: -len("_tunnel")] if args.out.endswith("_tunnel") else args.out
+    return f"{base}_{scene}"
+
+
 def _profile_lines(profile: dict, caption: str, digits: int) -> list[str]:
     """The table rows of :func:`profile_rollout`'s figures."""
     f = f".{digits}f"
     return ["", caption, "",
-            "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | peak memory [MiB] |",
-            "|---|---|---|---|---|",
+            "| forward [s] | forward with tape [s] | backward [s] | mesh-contact substeps | CCD events | peak memory [MiB] |",
+            "|---|---|---|---|---|---|",
             (f"| {profile['forward_s']:{f}} | {profile['forward_taped_s']:{f}} | {profile['backward_s']:{f}} | "
-             f"{profile['contact_substeps']} | {profile['peak_rss_mib']:.0f} |")]
+             f"{profile['contact_substeps']} | {profile['ccd_events']} | {profile['peak_rss_mib']:.0f} |")]
 
 
 def _median(values):
@@ -208,6 +232,14 @@ def profile_rollout(scene: str) -> dict:
         def forward(grad):
             u, res = C.simulate(problem, problem.u0, grad=grad)
             return u, res, C.drape_loss(problem, res)
+    elif scene == "bank_shot":
+        from scenes import bank_shot as B
+
+        model = B.build()
+
+        def forward(grad):
+            v, res = B.simulate(model, B.STARTS["newton"], events=B.events_of(model), grad=grad)
+            return v, res, B._distance_loss(res) + res.event_roots.sum()
     elif scene == "tunnel":
         from scenes import tunnel as T
 
@@ -234,6 +266,7 @@ def profile_rollout(scene: str) -> dict:
         times["backward_s"].append(time.perf_counter() - t1)
     out = {k: float(np.median(v)) for k, v in times.items()}
     out["contact_substeps"] = int(res.stats["contact_substeps"])
+    out["ccd_events"] = int(res.stats.get("ccd_events", 0))  # approaching CCD hits in the rollout
     out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
 
@@ -277,7 +310,7 @@ def cloth_toss(args) -> dict:
         lines.append(f"| {method} | {len(done)}/{len(mine)} | {100 * summary[method]['median_cut']:.1f}% | "
                      f"{'-' if not done else format(summary[method]['median_rollouts_to_target'], '.0f')} |")
     lines += _profile_lines(profile, "One rollout at seed 0's start (median of 3, a fresh worker):", 2)
-    out = args.out + "_cloth_toss"
+    out = _scene_prefix(args, "cloth_toss")
     plt = _write_outputs(out, lines, {"machine": machine, "iters": args.cloth_iters, "summary": summary,
                                       "profile": profile, "runs": runs})
 
@@ -314,12 +347,16 @@ def main(argv=None) -> None:
     parser.add_argument("--cloth-seeds", type=int, default=5, help="cloth_toss: seeds 0 .. N-1 (default %(default)s)")
     parser.add_argument("--cloth-iters", type=int, default=40,
                         help="cloth_toss: rollouts per method (default %(default)s)")
+    parser.add_argument("--bank-seeds", type=int, default=5,
+                        help="bank_shot: seeded misses (--start seeded --seed 0..N-1) beside the two fixed starts (default %(default)s)")
     parser.add_argument("--bank-iters", type=int, default=300,
                         help="bank_shot: iterations per method, Newton's included (default %(default)s)")
     args = parser.parse_args(argv)
     for name in ("seeds", "iters", "jobs", "bank_iters", "cloth_seeds", "cloth_iters"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    if args.bank_seeds < 0:
+        parser.error("--bank-seeds must be >= 0")
     scenes = [x.strip() for x in args.scenes.split(",") if x.strip()]
     if not scenes or any(x not in ("tunnel", "bank_shot", "cloth_toss") for x in scenes):
         parser.error(f"--scenes must be a comma-separated subset of tunnel,bank_shot,cloth_toss, got {args.scenes!r}")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.roots import DEFAULT_MAX_DERIVATIVE, init_warp
+from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 
 __all__ = ["MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
@@ -171,46 +171,62 @@ def edge_edge_roots(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_
     return _roots(1, queries, max_derivative)
 
 
+def _taped_query_function(kernel, out_dtype, out_shape):
+    """A torch.autograd.Function over Warp ``kernel(queries (N, 8, 3), *scalars) -> out (N,)``:
+    forward runs it under a ``wp.Tape``, backward replays the tape (the kernels' custom adjoints,
+    e.g. the mollified root derivative). ``out_shape``: the torch shape of one output row."""
+    import torch
+
+    class Function(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, queries, *scalars):
+            init_warp()
+            n = queries.shape[0]
+            q = wp.array(queries.detach().cpu().numpy().reshape(n, 8, 3), dtype=_k.mat83d, device=_DEVICE,
+                         requires_grad=True)
+            out = wp.zeros(n, dtype=out_dtype, device=_DEVICE, requires_grad=True)
+            tape = wp.Tape()
+            with tape:
+                wp.launch(kernel, dim=n, inputs=[q, *(wp.float64(x) for x in scalars)], outputs=[out],
+                          device=_DEVICE)
+            ctx.tape, ctx.q, ctx.out, ctx.device = tape, q, out, queries.device
+            return torch.from_numpy(out.numpy().reshape((n, *out_shape)).copy()).to(queries.device)
+
+        @staticmethod
+        def backward(ctx, grad):
+            n = ctx.q.shape[0]
+            ctx.out.grad.assign(wp.array(grad.detach().cpu().numpy().reshape(n, -1).astype(np.float64),
+                                         dtype=out_dtype, device=_DEVICE))
+            ctx.tape.backward()
+            result = torch.from_numpy(ctx.q.grad.numpy().reshape(n, 8, 3).copy()).to(ctx.device)
+            ctx.tape.zero()
+            return (result, *([None] * (len(ctx.needs_input_grad) - 1)))
+
+    return Function
+
+
 class _CoplanarityRoots:
-    """torch.autograd.Function (built lazily: torch stays optional for the numpy API)."""
+    """The torch functions of the coplanarity cubic (built lazily: torch stays optional for the
+    numpy API): its three roots with the kernels' mollified adjoint, and its unit-scaled
+    coefficients (for a root derivative chosen outside the kernels)."""
 
     function = None
+    coefficients_function = None
 
     @classmethod
     def get(cls):
         if cls.function is None:
-            import torch
-
-            class Function(torch.autograd.Function):
-                @staticmethod
-                def forward(ctx, queries, max_derivative):
-                    init_warp()
-                    n = queries.shape[0]
-                    q = wp.array(queries.detach().cpu().numpy().reshape(n, 8, 3), dtype=_k.mat83d, device=_DEVICE,
-                                 requires_grad=True)
-                    roots = wp.zeros(n, dtype=_k.vec6d, device=_DEVICE, requires_grad=True)
-                    tape = wp.Tape()
-                    with tape:
-                        wp.launch(_k.coplanarity_roots_kernel, dim=n, inputs=[q, wp.float64(max_derivative)],
-                                  outputs=[roots], device=_DEVICE)
-                    ctx.tape, ctx.q, ctx.roots, ctx.device = tape, q, roots, queries.device
-                    return torch.from_numpy(roots.numpy().reshape(n, 3, 2).copy()).to(queries.device)
-
-                @staticmethod
-                def backward(ctx, grad):
-                    n = ctx.q.shape[0]
-                    ctx.roots.grad.assign(wp.array(grad.detach().cpu().numpy().reshape(n, 6).astype(np.float64),
-                                                   dtype=_k.vec6d, device=_DEVICE))
-                    ctx.tape.backward()
-                    out = torch.from_numpy(ctx.q.grad.numpy().reshape(n, 8, 3).copy()).to(ctx.device)
-                    ctx.tape.zero()
-                    return out, None
-
-            cls.function = Function
+            cls.function = _taped_query_function(_k.coplanarity_roots_kernel, _k.vec6d, (3, 2))
         return cls.function
 
+    @classmethod
+    def get_coefficients(cls):
+        if cls.coefficients_function is None:
+            cls.coefficients_function = _taped_query_function(_k.coplanarity_coefficients_kernel, wp.vec4d, (4,))
+        return cls.coefficients_function
 
-def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+
+def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVATIVE, derivative: str = "mollified"):
     """Torch: the lifted events of vertex-face or edge-edge pairs moving linearly over a step.
 
     The roots (real or complex) of the coplanarity cubic of the four points' straight paths
@@ -224,6 +240,9 @@ def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVA
         x_start, x_end: torch float64 (N, 4, 3) [m]: vertex, triangle corners (vertex-face) or
             the two edges' endpoints (edge-edge), at the start and the end of the step.
         max_derivative: the robust-division bound ``M`` (> 0).
+        derivative: "mollified" (the kernels' robust division) or "orthogonal" (real roots: the
+            exact derivative with only its part along the merging direction clamped to ``M``,
+            eq. ``orthogonal_clamping_real_side``; :func:`collision.roots.orthogonal_clamped_jacobian`).
 
     Returns:
         torch float64 (N, 3, 2): slots (t-, tM, t+) of design.md, (Re, Im), in fractions of the step.
@@ -244,9 +263,14 @@ def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVA
         raise ValueError(f"x_start and x_end must have the same shape, got {tuple(x_start.shape)} and {tuple(x_end.shape)}")
     if not float(max_derivative) > 0.0:
         raise ValueError(f"max_derivative must be positive, got {max_derivative!r}")
+    if derivative not in DERIVATIVES:
+        raise ValueError(f"derivative must be one of {DERIVATIVES}, got {derivative!r}")
     queries = torch.cat([x_start, x_end], dim=1)
     if queries.shape[0] == 0:
         return torch.zeros((0, 3, 2), dtype=torch.float64, device=queries.device)
+    if derivative == "orthogonal":
+        coefficients = _CoplanarityRoots.get_coefficients().apply(queries)
+        return cubic_roots(coefficients, float(_k.CCD_T_MAX), float(max_derivative), derivative="orthogonal")
     return _CoplanarityRoots.get().apply(queries, float(max_derivative))
 
 

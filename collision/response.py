@@ -282,6 +282,7 @@ class ImpulseCollisionHandler:
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
         self.failsafe_count = 0
+        self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
         self.untaped_substeps = 0
         self.active_set_repairs = 0
         self.unsettled_active_sets = 0
@@ -668,6 +669,7 @@ class ImpulseCollisionHandler:
                                        self._body_mass, self._body_inertia_w(bq0))
                 continue
             sel = approaching
+            self.ccd_events += int(sel.sum())
             target = np.maximum(-e * vn[sel], SEPARATION_RATE * delta / h)
             cs.add(kind[sel], pair[sel], idx[sel], w[sel], n[sel], toi[sel] * h, target)
             self._solve(cs, vp, bv, r0, inv_inertia_w)
@@ -871,6 +873,7 @@ class ImpulseCollisionHandler:
                                                               vp, bv)
                 st["zone"] = True
                 continue
+            self.ccd_events += int(approaching.sum())
             add(approaching, out, host, kind, pair, idx, source)
             exact()
         if failsafe:

@@ -24,13 +24,21 @@ DEFAULT_MAX_DERIVATIVE = _k.DEFAULT_MAX_DERIVATIVE
 __all__ = [
     "DEFAULT_MAX_DERIVATIVE",
     "DEFAULT_T_MAX",
+    "DERIVATIVES",
     "cubic_root_jacobian",
     "cubic_roots",
+    "orthogonal_clamped_jacobian",
     "quadratic_root_jacobian",
     "quadratic_roots",
     "solve_cubic",
     "solve_quadratic",
 ]
+
+DERIVATIVES = ("mollified", "orthogonal")
+"""Root derivatives on offer: ``mollified`` (the kernels' robust division, bounded by ``M``
+everywhere) and ``orthogonal`` (eq. ``orthogonal_clamping_real_side``: a real root's exact
+implicit derivative with only its component along the merging direction clamped to ``M``; complex
+and escaping roots keep the mollified one). See :func:`orthogonal_clamped_jacobian`."""
 
 _DEVICE = "cpu"
 _initialised = False
@@ -153,6 +161,100 @@ def _cubic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float):
     return roots.reshape(lead + (3, 2)), jac.reshape(lead + (3, 2, 4))
 
 
+def _check_derivative(derivative: str) -> str:
+    if derivative not in DERIVATIVES:
+        raise ValueError(f"derivative must be one of {DERIVATIVES}, got {derivative!r}")
+    return derivative
+
+
+def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFAULT_MAX_DERIVATIVE,
+                                t_max: float = DEFAULT_T_MAX) -> np.ndarray:
+    """Eq. ``orthogonal_clamping_real_side``, generalised from the paper's monic quadratic.
+
+    A real root's exact implicit derivative ``g = -v(t) / p'(t)``, ``v(t) = [t^(n-1), ..., t, 1]``,
+    blows up where two real roots merge (``p'(t) -> 0``). The paper splits it into a part along
+    ``dc~/dp^`` (the direction that moves the parabola ``c~ = 0``, i.e. that separates or merges
+    the pair) and the rest, and clamps only the first. For any polynomial that direction is
+    ``n = v(t_c)``, the gradient of ``p(t_c)`` at the critical point ``p'(t_c) = 0`` between the
+    pair (for the monic quadratic ``p(t_c) = c~`` and ``v(t_c) = [-b^/2, 1] = dc~/dp^``):
+    ``g = alpha n + g_perp`` with ``alpha`` clamped to ``|alpha| <= M``. ``g_perp`` stays bounded
+    as the roots merge (it tends to ``-(dv/dt(t_c))_perp / p''(t_c)``); it is evaluated from
+    divided differences, without the cancellation of ``g - alpha n``. The clamp is taken on the
+    polynomial scaled to a largest coefficient of 1 (``M`` unit-free, as for the mollified
+    derivative). Complex and escaping (``|t| >= t_max``) roots, and imaginary parts, keep the
+    rows of ``jacobian``.
+
+    Args:
+        p: coefficients (..., n), highest degree first, n = 3 (quadratic) or 4 (cubic).
+        roots: (..., n-1, 2) their roots (Re, Im) from the solver.
+        jacobian: (..., n-1, 2, n) the solver's mollified Jacobian (the rows kept as they are).
+        max_derivative: the clamp ``M`` (> 0) of the parallel part.
+        t_max: the solver's root clamp (roots at it are the escaping ones).
+
+    Returns:
+        float64 (..., n-1, 2, n): ``jacobian`` with the real roots' real-part rows replaced.
+    """
+    arr = np.asarray(p, dtype=np.float64)
+    n = arr.shape[-1]
+    if n not in (3, 4):
+        raise ValueError(f"p must hold 3 or 4 coefficients, got {n}")
+    max_derivative = _check_positive(max_derivative, "max_derivative")
+    roots = np.asarray(roots, dtype=np.float64)
+    out = np.array(jacobian, dtype=np.float64, copy=True)
+    scale = np.abs(arr).max(axis=-1, keepdims=True)
+    scale = np.where(scale > 0.0, scale, 1.0)
+    pc = arr / scale  # unit-scaled coefficients
+    if n == 3:
+        pc = np.concatenate([np.zeros_like(pc[..., :1]), pc], axis=-1)  # as a cubic with q = 0
+    q, a, b = pc[..., 0:1], pc[..., 1:2], pc[..., 2:3]  # (..., 1): broadcast over the root slots
+    t = roots[..., 0]
+    real = (roots[..., 1] == 0.0) & (np.abs(t) < t_max) & np.isfinite(t)
+    t = np.where(real, t, 0.0)
+    # critical points: roots of p'(t) = 3q t^2 + 2a t + b; the one nearest t (their common real
+    # part when they are complex: the root is then isolated and the split still well defined)
+    disc = a * a - 3.0 * q * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        # the two roots of 3q t^2 + 2a t + b without cancellation (q may be 0: then the linear one)
+        lead = -(a + np.copysign(sq, a))
+        c1 = np.where(lead != 0.0, b / lead, np.nan)
+        c2 = np.where(q != 0.0, lead / (3.0 * q), np.nan)
+        c_inflect = np.where(q != 0.0, -a / (3.0 * q), np.where(a != 0.0, -b / (2.0 * a), 0.0))
+    has_real = (disc >= 0.0) & ((q != 0.0) | (a != 0.0))
+    c1 = np.where(np.isfinite(c1), c1, np.inf)
+    c2 = np.where(np.isfinite(c2), c2, np.inf)
+    nearer = np.where(np.abs(t - c1) <= np.abs(t - c2), c1, c2)
+    tc = np.where(has_real, nearer, c_inflect)
+    tc = np.where(np.isfinite(tc), tc, 0.0)
+    powers = np.arange(3, -1, -1)
+    v_c = tc[..., None] ** powers  # n = v(t_c), (..., slots, 4)
+    # divided differences w = (v(t) - v(t_c)) / (t - t_c) and p'(t) / (t - t_c) (exact when
+    # p'(t_c) = 0): g_perp = -(w - proj_n w) / d
+    w = np.stack([t * t + t * tc + tc * tc, t + tc, np.ones_like(t), np.zeros_like(t)], axis=-1)
+    d = 3.0 * q * (t + tc) + 2.0 * a
+    dp = 3.0 * q * t * t + 2.0 * a * t + b
+    if n == 3:
+        v_c, w = v_c[..., 1:], w[..., 1:]
+    nn = (v_c * v_c).sum(-1)
+    v_t = t[..., None] ** powers[4 - n:]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        alpha = -(v_t * v_c).sum(-1) / nn / dp
+        perp_exact = np.where(has_real & (d != 0.0),
+                              1.0, 0.0)[..., None] * -(w - ((w * v_c).sum(-1) / nn)[..., None] * v_c) / d[..., None]
+        g = -v_t / dp[..., None]
+        perp_direct = g - (alpha[..., None] * v_c)
+    perp = np.where((has_real & (d != 0.0))[..., None], perp_exact, perp_direct)
+    # a double root (p'(t) = 0) or a non-finite split: the sign of the mollified row's parallel part
+    moll = np.take(out, 0, axis=-2) * scale[..., None, :]  # d Re / d(unit-scaled p)
+    sign_moll = np.sign((moll * v_c).sum(-1))
+    alpha = np.where(np.isfinite(alpha), alpha, sign_moll * np.inf)
+    alpha = np.clip(alpha, -max_derivative, max_derivative)
+    row = (alpha[..., None] * v_c + perp) / scale[..., None, :]
+    ok = real & np.isfinite(row).all(-1)
+    out[..., 0, :] = np.where(ok[..., None], row, out[..., 0, :])
+    return out
+
+
 def quadratic_root_jacobian(
     p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE
 ) -> np.ndarray:
@@ -194,8 +296,15 @@ def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float =
 # ---------------------------------------------------------------------------------------------
 
 
-def _torch_roots(p, n: int, jac_fn, t_max: float, max_derivative: float):
+def _torch_roots(p, n: int, jac_fn, t_max: float, max_derivative: float, derivative: str = "mollified"):
     import torch
+
+    if _check_derivative(derivative) == "orthogonal":
+        mollified = jac_fn
+
+        def jac_fn(arr, t_max, max_derivative):
+            roots, jac = mollified(arr, t_max, max_derivative)
+            return roots, orthogonal_clamped_jacobian(arr, roots, jac, max_derivative, t_max)
 
     class _Roots(torch.autograd.Function):
         @staticmethod
@@ -216,11 +325,13 @@ def _torch_roots(p, n: int, jac_fn, t_max: float, max_derivative: float):
     return _Roots.apply(p)
 
 
-def quadratic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+def quadratic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE,
+                    derivative: str = "mollified"):
     """Torch: roots of ``a t^2 + b t + c`` with the mollified implicit derivative as backward.
 
     Args:
         p: tensor (..., 3) ``[a, b, c]`` (float64 recommended).
+        derivative: one of :data:`DERIVATIVES` ("orthogonal": eq. ``orthogonal_clamping_real_side``).
 
     Returns:
         tensor (..., 2, 2): ``[slot (t-, t+), (Re, Im)]``.
@@ -231,18 +342,22 @@ def quadratic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEF
         _quadratic_jacobian_raw,
         _check_positive(t_max, "t_max"),
         _check_positive(max_derivative, "max_derivative"),
+        derivative,
     )
 
 
-def cubic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+def cubic_roots(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE,
+                derivative: str = "mollified"):
     """Torch: roots of ``q t^3 + a t^2 + b t + c`` with the mollified implicit derivative as backward.
 
     Args:
         p: tensor (..., 4) ``[q, a, b, c]``.
+        derivative: one of :data:`DERIVATIVES` ("orthogonal": eq. ``orthogonal_clamping_real_side``).
 
     Returns:
         tensor (..., 3, 2): ``[slot (t-, tM, t+), (Re, Im)]``.
     """
     return _torch_roots(
-        p, 4, _cubic_jacobian_raw, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative")
+        p, 4, _cubic_jacobian_raw, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"),
+        derivative,
     )

@@ -349,3 +349,15 @@ def coplanarity_roots_kernel(
     tape (mollified implicit derivative bounded by ``max_derivative``)."""
     i = wp.tid()
     roots[i] = cubic_roots(unit_scaled_cubic(query_coefficients(queries[i])), CCD_T_MAX, max_derivative)
+
+
+@wp.kernel
+def coplanarity_coefficients_kernel(
+    queries: wp.array(dtype=mat83d),
+    coefficients: wp.array(dtype=wp.vec4d),
+):
+    """Each query's unit-scaled coplanarity cubic ``[q, a, b, c]`` (the one whose roots
+    :func:`coplanarity_roots_kernel` solves), for a root derivative chosen outside the kernel
+    (eq. ``orthogonal_clamping_real_side``). Differentiable under a tape."""
+    i = wp.tid()
+    coefficients[i] = unit_scaled_cubic(query_coefficients(queries[i]))

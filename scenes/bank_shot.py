@@ -13,6 +13,9 @@ Starts (``--start``):
 * ``newton``: Newton's (0, 5, -5) m/s: floor, then wall, then it ends 3 m from the target.
 * ``miss``: (3, 5, -5) m/s: floor, then past the wall's side (x = 1.35 m where the wall ends at
   x = 1 m); the distance's gradient alone leads to a direct throw that never touches the wall.
+* ``seeded`` (with ``--seed S``): a miss drawn from the seed (:func:`seeded_start`): a
+  sideways speed of 1.5-3.5 m/s to either side, 4-6 m/s towards the wall and 4-6 m/s down, kept
+  when the path bounces off the floor and passes the wall without touching it.
 
 Adam on the initial velocity, one rollout per iteration:
 
@@ -66,6 +69,22 @@ GROWTH = 1.5
 MISS_OFFSET = 100.0  # [m^2] CMA-ES: a miss of the wall costs this plus its event loss
 CMA_SIGMA = 1.0  # [m/s] CMA-ES's initial step
 METHODS = ("proposed", "baseline", "cma")
+
+
+SEEDED_SIDEWAYS, SEEDED_FORWARD, SEEDED_DOWN = (1.5, 3.5), (4.0, 6.0), (4.0, 6.0)  # [m/s] ranges of seeded misses
+
+
+def seeded_start(model, seed: int) -> tuple[float, float, float]:
+    """A start [m/s] that misses the wall, drawn from ``seed`` (see the module docstring): draws
+    until the forward rollout bounces off the floor and never touches the wall."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        v = np.array([rng.choice((-1.0, 1.0)) * rng.uniform(*SEEDED_SIDEWAYS), rng.uniform(*SEEDED_FORWARD),
+                      -rng.uniform(*SEEDED_DOWN)])
+        hits = bounces(simulate(model, v)[1])
+        if hits["floor"] > 0 and hits["wall"] == 0:
+            return tuple(float(x) for x in v)
+    raise RuntimeError(f"bank_shot: no missing start found for seed {seed}")
 
 
 def build():
@@ -306,8 +325,9 @@ def gradient_check(model, v, step: float = 1e-6) -> dict[str, Any]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
                         help="iterations (rollouts) per method (default %(default)s)")
-    parser.add_argument("--start", choices=sorted(STARTS), default="newton",
-                        help="initial velocity: Newton's (0, 5, -5) m/s or one that misses the wall (default %(default)s)")
+    parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="newton",
+                        help="initial velocity: Newton's (0, 5, -5) m/s, (3, 5, -5) m/s that misses the wall, or "
+                             "'seeded': a miss drawn from --seed (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {','.join(METHODS)} (default all)")
 
@@ -331,7 +351,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     methods = parse_methods(args.methods, METHODS)
     model = build()
     _log_world(log, model)
-    start = STARTS[args.start]
+    start = seeded_start(model, args.seed) if args.start == "seeded" else STARTS[args.start]
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:
@@ -344,5 +364,5 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
             log.stream.set_time("iteration", sequence=i)
             log.stream.log(f"/iterates/{method}/path", rr.LineStrips3D([path], colors=[colors[method]]))
         out[method] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in result.items()}
-    return {"scene": NAME, "start": args.start, "start_velocity": list(start), "target": list(TARGET),
+    return {"scene": NAME, "start": args.start if args.start != "seeded" else f"seed {args.seed}", "start_velocity": list(start), "target": list(TARGET),
             "iters": args.iters, "methods": out}

@@ -15,8 +15,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from scenes import sim_common
+from scenes.registry import positive_int
 from scenes.sim_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
-from scenes.sim_common import add_arguments as add_arguments
 from scenes.sim_common import run_scene
 
 NAME = "cloth_drop"
@@ -33,14 +34,22 @@ BOX_CENTRE = (0.35, 0.0, 0.1)
 THICKNESS = 1e-3
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sim_common.add_arguments(parser)
+    parser.add_argument("--cloth-res", type=positive_int, default=CLOTH_CELLS,
+                        help=f"cloth cells per side (the cloth's size, density and spring constants kept; "
+                             f"default {CLOTH_CELLS})")
+
+
 def build(builder: Any, args: argparse.Namespace) -> None:
-    """Adds the cloth, the sphere, the box and the ground plane."""
+    """Adds the cloth (``--cloth-res`` cells per side), the sphere, the box and the ground plane."""
     from sim.mesh_io import box_mesh, icosphere
 
-    cell = CLOTH_SIZE / CLOTH_CELLS
+    cells = int(getattr(args, "cloth_res", CLOTH_CELLS))
+    cell = CLOTH_SIZE / cells
     corner = (CLOTH_CENTRE_XY[0] - CLOTH_SIZE / 2, CLOTH_CENTRE_XY[1] - CLOTH_SIZE / 2, CLOTH_HEIGHT)
     builder.add_cloth_grid(
-        corner, None, CLOTH_CELLS, CLOTH_CELLS, cell, cell,
+        corner, None, cells, cells, cell, cell,
         density=0.2, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
     )
     builder.add_static_mesh(*icosphere(SPHERE_RADIUS, 2), pos=SPHERE_CENTRE)

@@ -18,7 +18,7 @@ from typing import Any
 
 from scenes.sim_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
 from scenes import sim_common
-from scenes.registry import positive_float
+from scenes.registry import positive_float, positive_int
 from scenes.sim_common import run_scene
 
 NAME = "cloth_rigid"
@@ -40,13 +40,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim_common.add_arguments(parser)
     parser.add_argument("--ball-speed", type=positive_float, default=BALL_SPEED,
                         help=f"speed of the ball towards the cloth [m/s] (default {BALL_SPEED})")
+    parser.add_argument("--cloth-res", type=positive_int, default=CLOTH_CELLS,
+                        help=f"cloth cells per side (size, density and spring constants kept; default {CLOTH_CELLS})")
 
 
 def build(builder: Any, args: argparse.Namespace) -> None:
     """Adds the hanging cloth and the ball."""
     from sim.mesh_io import box_mesh, icosphere
 
-    n = CLOTH_CELLS
+    n = int(getattr(args, "cloth_res", CLOTH_CELLS))
     cell = CLOTH_SIZE / n
     s = math.sqrt(0.5)
     rot = (s, 0.0, 0.0, s)  # +90 deg about x: local y -> world z (cloth in the x-z plane)

@@ -4,7 +4,8 @@ A simulation scene module defines ``build(builder, args)``, which adds its cloth
 colliders to a :class:`sim.builder.ModelBuilder` (the builder records the components the scene
 needs: ``cloth``, ``rigid``, ``static``), and delegates ``add_arguments`` / ``run`` to this module.
 
-Per step (``dt`` split into ``substeps``): :class:`sim.integrator.SemiImplicitIntegrator` with an
+Per step (``dt`` split into ``substeps``): :class:`sim.integrator.SemiImplicitIntegrator` (or,
+with ``--integrator implicit``, :class:`sim.implicit.ImplicitIntegrator`) with an
 :class:`collision.response.ImpulseCollisionHandler` as its collision hook, then one frame
 logged with :meth:`sim.recorder.SimRecorder.on_logger` (particle positions, body poses, the
 step's contacts gathered over all its substeps, metrics ``energy/{kinetic,potential,total}``,
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from scenes.registry import positive_float, positive_int
+from sim.integrator import INTEGRATORS
 from sim.rotation import quat_to_matrix
 
 PRECISIONS = ("float64",)
@@ -75,13 +77,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--response", choices=RESPONSES, default=DEFAULT_RESPONSE,
                         help="collision response: Gauss-Seidel impulses or the replayed exact solve "
                              f"that rollouts differentiate (default {DEFAULT_RESPONSE})")
+    parser.add_argument("--integrator", choices=INTEGRATORS, default="semi_implicit",
+                        help="cloth springs: semi-implicit Euler (explicit) or backward Euler with a CG solve "
+                             "(default %(default)s)")
+    parser.add_argument("--cg-tolerance", type=positive_float, default=None,
+                        help="implicit integrator: CG's relative residual (default 1e-8)")
 
 
 def default_args(**overrides: Any) -> argparse.Namespace:
     """A namespace with the CLI defaults (for in-process runs), updated by ``overrides``."""
     ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
                             substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0,
-                            response=DEFAULT_RESPONSE)
+                            response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -216,7 +223,7 @@ def simulate(
     from tqdm import tqdm
 
     from collision.response import ImpulseCollisionHandler
-    from sim.integrator import SemiImplicitIntegrator
+    from sim.integrator import make_integrator
     from sim.penetration import PenetrationChecker
 
     steps = int(args.steps) if getattr(args, "steps", None) is not None else DEFAULT_STEPS
@@ -224,7 +231,9 @@ def simulate(
     substeps = int(getattr(args, "substeps", DEFAULT_SUBSTEPS))
 
     model = build_model(build, args)
-    integrator = SemiImplicitIntegrator(model)
+    kind = getattr(args, "integrator", "semi_implicit")
+    tolerance = getattr(args, "cg_tolerance", None)
+    integrator = make_integrator(model, kind, **({"tolerance": tolerance} if kind == "implicit" and tolerance else {}))
     handler = ImpulseCollisionHandler(
         model, differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
     gatherer = ContactGatherer(handler)
@@ -275,7 +284,7 @@ def simulate(
                     f"{name}: the simulation diverged at step {k + 1}: kinetic energy {kin:.3g} J exceeds "
                     f"{DIVERGENCE_FACTOR:g}x the scene's energy scale ({divergence_limit / DIVERGENCE_FACTOR:.3g} J). "
                     f"Explicit springs need substeps shorter than about 2 / sqrt(k / m): raise --substeps "
-                    f"(now {substeps}) or lower --dt (now {dt:g} s)"
+                    f"(now {substeps}), lower --dt (now {dt:g} s) or use --integrator implicit"
                 )
             e_max = max(e_max, e) if math.isfinite(e) else e_max
             rep = checker.check(state)
@@ -311,6 +320,8 @@ def simulate(
         "steps": steps,
         "dt": dt,
         "substeps": substeps,
+        "integrator": kind,
+        "cg_iterations": int(getattr(integrator, "total_iterations", 0)),
         "device": str(model.device),
         "scale": float(getattr(args, "scale", 1.0)),
         "components": sorted(model.components),

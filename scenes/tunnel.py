@@ -6,14 +6,15 @@ hit time: an aimed initial velocity ``v*`` that really hits that face there is f
 simulator itself, and its rollout gives the **targets**: the hit time ``t_target`` and the
 particle's velocity after the bounce ``v_target`` (so the targets are reachable exactly). The
 start ``v0`` misses the tetrahedron altogether, and the *wanted* root (followed from ``v*`` to
-``v0`` with :class:`sim.events.BranchTracker`) is complex there.
+``v0`` with :class:`sim.events.BranchTracker` on the ghost rollout, as phase one sees it) is
+complex there.
 
 Adam on the initial velocity then minimises, per iteration (one rollout each):
 
 * while the rollout misses: the lifted event of the face and the particle over the
   ``EVENT_STEPS`` steps before the target hit's step (:mod:`sim.events`): eq. ``loss`` on the
-  tracked root (target ``(t_target - window start, 0)``), plus the partner's real part (eq.
-  ``complexconjugateloss``) while the root is complex, plus the squared distance of the
+  tracked root (target ``(t_target - window start, 0)``), plus the partner's real part at the
+  same target (eq. ``complexconjugateloss``) while the root is complex, plus the squared distance of the
   barycentric coordinates at the root's real part from the face's centroid (the loss does not
   know where on the face the target hit is, so it aims at the middle);
 * from the first hit of the designated face on (a frictionless impulse is parallel to the face's
@@ -191,14 +192,19 @@ def make_problem(seed: int) -> Problem:
         side = np.cross(v_star, rng.normal(size=3))
         side *= np.linalg.norm(v_star) / np.linalg.norm(side)
         # walk outwards, following the wanted root, to the first miss (from a push of 0.1 |v*| on)
-        # where it is complex
+        # where it is complex. The root is followed on the ghost (collisions off), as phase one
+        # sees it: on the way the real particle may hit another face inside the window, and its
+        # event then jumps (seed 44 tracked a far complex pair while the wanted root was real)
         tracker = BranchTracker(wanted)
         tracker.update(roots_star)
         for push in np.arange(1, PUSH_STEPS + 1) * (MAX_PUSH / PUSH_STEPS):
             v0 = v_star + push * side
-            _, walk = _rollout(model, v0, events=[event])
-            slot = tracker.update(walk.event_roots[0].detach().numpy())
-            if push >= MIN_PUSH and not walk.stats["contact_substeps"] and walk.event_roots[0, slot, 1].item() != 0.0:
+            _, ghost = _rollout(model, v0, events=[event], collisions=False)
+            slot = tracker.update(ghost.event_roots[0].detach().numpy())
+            if push < MIN_PUSH or ghost.event_roots[0, slot, 1].item() == 0.0:
+                continue
+            _, walk = _rollout(model, v0)
+            if not walk.stats["contact_substeps"]:
                 problem = Problem(seed, model, face, v_star, v0, t_target, v_target, window, slot)
                 w_star = hit_coordinates(problem, res, k_hit, t_hit).detach().numpy()
                 problem.hit_margin = min(HIT_MARGIN, 0.5 * float(w_star.min()))
@@ -272,13 +278,8 @@ def _miss_loss(problem: Problem, res, tracker, unmollified: bool):
         return None, root, w  # a real-roots-only simulator has no value here, let alone a gradient
     if is_complex:
         partner = next(k for k in range(3) if k != slot and float(roots[k, 1].detach()) == -float(root[1].detach()))
-        re, im = float(root[0].detach()), float(root[1].detach())
-        # eq. complexconjugateloss. When the pair is nearer the real axis than the target time,
-        # first onto the axis where it is (t_L at the pair's real part: only the imaginary part
-        # remains): pulling the real part to the target as well slid such pairs along, complex,
-        # past the target (seeds 8 and 14 never split)
-        t_real = re if abs(im) < abs(re - tau) else tau
-        return complex_conjugate_loss(root, roots[partner], (t_real, 0.0)), root, w
+        # eq. complexconjugateloss, both real parts at the target time
+        return complex_conjugate_loss(root, roots[partner], (tau, 0.0)), root, w
     loss = root_loss(root, (tau, 0.0))
     return loss + AIM_WEIGHT * ((w - 1.0 / 3.0) ** 2).sum(), root, w
 

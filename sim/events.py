@@ -178,9 +178,11 @@ def _coordinates(kind_edge, y):
     return torch.where(kind_edge[:, None], edge, face)
 
 
-def event_outputs(model, events, particle_q, body_q, dt: float, max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+def event_outputs(model, events, particle_q, body_q, dt: float, max_derivative: float = DEFAULT_MAX_DERIVATIVE,
+                  derivative: str = "mollified"):
     """Roots [s from the window's start] (E, 3, 2) and closest-point coordinates at each root's
-    real part (E, 3, 3) of the events (see the module docstring)."""
+    real part (E, 3, 3) of the events (see the module docstring); ``derivative`` as in
+    :func:`collision.ccd.coplanarity_roots`."""
     import torch
 
     from collision.ccd import coplanarity_roots
@@ -188,7 +190,7 @@ def event_outputs(model, events, particle_q, body_q, dt: float, max_derivative: 
     if not events:
         return torch.zeros((0, 3, 2), dtype=torch.float64), torch.zeros((0, 3, 3), dtype=torch.float64)
     x_first, x_last = event_positions(model, events, particle_q, body_q)
-    fractions = coplanarity_roots(x_first, x_last, max_derivative)
+    fractions = coplanarity_roots(x_first, x_last, max_derivative, derivative)
     duration = torch.tensor([(ev.window[1] - ev.window[0]) * dt for ev in events], dtype=torch.float64)
     roots = fractions * duration[:, None, None]
     kind_edge = torch.tensor([ev.kind == "edge_edge" for ev in events])
@@ -251,6 +253,7 @@ class BranchTracker:
             raise ValueError(f"slot must be 0, 1 or 2, got {slot!r}")
         self.slot = slot
         self.previous = None  # (re, im) of the tracked root at the last update
+        self.real_count = None  # how many of the three roots were real at the last update
 
     def update(self, roots, target: float | None = None) -> int:
         """The slot of the tracked root among ``roots`` (3, 2) (numpy or torch, one event);
@@ -259,6 +262,7 @@ class BranchTracker:
         r = np.asarray(roots.detach().cpu().numpy() if hasattr(roots, "detach") else roots, dtype=np.float64)
         if self.previous is None:
             self.previous = r[self.slot].copy()
+            self.real_count = sum(1 for k in range(3) if r[k, 1] == 0.0)
             return self.slot
         re0, im0 = self.previous
         if abs(re0) >= self.ESCAPING:
@@ -268,9 +272,18 @@ class BranchTracker:
                 same_side = [k for k in escaping if np.sign(r[k, 0]) == np.sign(re0)]
                 self.slot = (same_side or escaping)[0]
                 self.previous = r[self.slot].copy()
+                self.real_count = sum(1 for k in range(3) if r[k, 1] == 0.0)
                 return self.slot
         finite = [k for k in range(3) if abs(r[k, 0]) < self.ESCAPING] or [0, 1, 2]
-        nearest = min(finite, key=lambda k: abs(r[k, 0] - re0) + abs(r[k, 1] - im0))
+        real_count = sum(1 for k in range(3) if r[k, 1] == 0.0)
+        candidates = finite
+        if real_count == self.real_count:
+            # no pair merged or split since the last update: a real root stays real, a complex
+            # one complex on its side of the axis (a real root running off towards infinity
+            # is otherwise nearer a complex pair than its own new value: seed 42 of tunnel)
+            same = [k for k in finite if (r[k, 1] == 0.0) == (im0 == 0.0) and np.sign(r[k, 1]) == np.sign(im0)]
+            candidates = same or finite
+        nearest = min(candidates, key=lambda k: abs(r[k, 0] - re0) + abs(r[k, 1] - im0))
         if im0 == 0.0 and r[nearest, 1] != 0.0:
             # merged into a pair: the larger of the two real roots goes on as +Im
             sign = 1.0 if re0 >= r[nearest, 0] else -1.0
@@ -284,4 +297,5 @@ class BranchTracker:
                 nearest = pair[-1] if im0 > 0.0 else pair[0]
         self.slot = nearest
         self.previous = r[self.slot].copy()
+        self.real_count = real_count
         return self.slot

@@ -34,7 +34,12 @@ import numpy as np
 import warp as wp
 
 from kernels.forces import eval_springs
-from kernels.integrate import find_plane_contacts, integrate_bodies, integrate_particles, respond_plane_contacts
+from kernels.integrate import (
+    find_plane_contacts,
+    integrate_bodies,
+    integrate_particles,
+    respond_plane_contacts,
+)
 from sim.model import Model, State
 
 CollisionHandler = Callable[[State, State, float], "State | None"]
@@ -155,29 +160,7 @@ class SemiImplicitIntegrator:
 
         hd = wp.float64(h)
         if m.particle_count > 0:
-            f = self._forces(requires_grad)
-            if self._spring_indices is not None:
-                wp.launch(
-                    eval_springs,
-                    dim=m.spring_count,
-                    inputs=[
-                        s_in.particle_q,
-                        s_in.particle_qd,
-                        self._spring_indices,
-                        m.spring_rest_length,
-                        m.spring_stiffness,
-                        m.spring_damping,
-                    ],
-                    outputs=[f],
-                    device=d,
-                )
-            wp.launch(
-                integrate_particles,
-                dim=m.particle_count,
-                inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, hd],
-                outputs=[pred.particle_q, pred.particle_qd],
-                device=d,
-            )
+            self._integrate_particles(s_in, pred, h, requires_grad)
         if m.body_count > 0:
             wp.launch(
                 integrate_bodies,
@@ -221,6 +204,39 @@ class SemiImplicitIntegrator:
             if src is not dst and src.shape[0] > 0:
                 wp.copy(dst, src)
 
+    def _spring_forces(self, s_in: State, requires_grad: bool):
+        """The springs' forces at the substep's start (a fresh or zeroed scratch array)."""
+        m = self.model
+        f = self._forces(requires_grad)
+        if self._spring_indices is not None:
+            wp.launch(
+                eval_springs,
+                dim=m.spring_count,
+                inputs=[
+                    s_in.particle_q,
+                    s_in.particle_qd,
+                    self._spring_indices,
+                    m.spring_rest_length,
+                    m.spring_stiffness,
+                    m.spring_damping,
+                ],
+                outputs=[f],
+                device=self.device,
+            )
+        return f
+
+    def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> None:
+        """Spring forces and semi-implicit Euler of the particles into ``pred``."""
+        m = self.model
+        f = self._spring_forces(s_in, requires_grad)
+        wp.launch(
+            integrate_particles,
+            dim=m.particle_count,
+            inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h)],
+            outputs=[pred.particle_q, pred.particle_qd],
+            device=self.device,
+        )
+
     def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True) -> None:
         """Particle-vs-plane time-of-impact integration over one substep ``h``: from start
         positions ``x0``, start velocities ``v_start`` and predicted velocities ``v`` (after the
@@ -245,3 +261,23 @@ class SemiImplicitIntegrator:
             outputs=[x_out, v_out],
             device=d,
         )
+
+
+INTEGRATORS = ("semi_implicit", "implicit")
+"""Particle integrators on offer: semi-implicit Euler (explicit springs) and backward Euler
+(:class:`sim.implicit.ImplicitIntegrator`)."""
+
+
+def make_integrator(model: Model, kind: str = "semi_implicit", requires_grad: bool | None = None,
+                    **options) -> SemiImplicitIntegrator:
+    """The integrator ``kind`` (one of :data:`INTEGRATORS`) for ``model``; ``options`` go to the
+    implicit one (``tolerance``, ``max_iterations``)."""
+    if kind == "semi_implicit":
+        if options:
+            raise ValueError(f"the semi_implicit integrator takes no options, got {sorted(options)}")
+        return SemiImplicitIntegrator(model, requires_grad=requires_grad)
+    if kind == "implicit":
+        from sim.implicit import ImplicitIntegrator
+
+        return ImplicitIntegrator(model, requires_grad=requires_grad, **options)
+    raise ValueError(f"integrator must be one of {INTEGRATORS}, got {kind!r}")

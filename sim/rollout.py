@@ -30,9 +30,9 @@ import torch
 import warp as wp
 
 from collision.response import ImpulseCollisionHandler
-from collision.roots import DEFAULT_MAX_DERIVATIVE
+from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from sim.events import check_events, event_outputs
-from sim.integrator import SemiImplicitIntegrator
+from sim.integrator import INTEGRATORS, SemiImplicitIntegrator, make_integrator
 from sim.model import Model, State
 
 UNMOLLIFIED_MAX_DERIVATIVE = 1e300
@@ -55,6 +55,7 @@ class RolloutResult:
         event_coords: closest-point coordinates at each root's real part (E, 3, 3): barycentric
             (w1, w2, w3) of the triangle for vertex-face events, (s_a, s_b, 0) for edge-edge.
         stats: counts of the forward pass: ``contact_substeps`` (substeps with a mesh contact),
+            ``ccd_events`` (approaching CCD hits that became contacts, over all rounds and substeps),
             ``failsafe_substeps`` (impact zones formed), ``untaped_substeps`` (substeps whose
             impact-zone members' velocities carry no derivative), ``largest_system`` (most unknowns
             of one impulse solve), ``unsettled_active_sets`` (impulse solves whose active set did
@@ -113,8 +114,10 @@ class _Runner:
     """Steps the model and replays taped segments backwards (one instance per rollout call)."""
 
     def __init__(self, model: Model, steps: int, dt: float, substeps: int, checkpoint_every, collisions: bool,
-                 max_derivative: float):
+                 max_derivative: float, integrator: str = "semi_implicit", integrator_options=None):
         self.model = model
+        self.integrator = integrator
+        self.integrator_options = dict(integrator_options or {})
         self.steps, self.dt, self.substeps = steps, dt, substeps
         self.checkpoint_every = checkpoint_every
         self.collisions = collisions
@@ -123,10 +126,10 @@ class _Runner:
         self.tape = None
         self.states: list[State] = []
         self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
-                      "unsettled_active_sets": 0}
+                      "unsettled_active_sets": 0, "ccd_events": 0}
 
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
-        integ = SemiImplicitIntegrator(self.model, requires_grad=requires_grad)
+        integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
         if self.collisions:
             if self.handler is None:
                 self.handler = ImpulseCollisionHandler(self.model, differentiable=True, max_derivative=self.max_derivative)
@@ -207,6 +210,7 @@ class _Runner:
                 s = self._state_from(record[b], self.model, False)
         if self.handler is not None:
             self.stats["failsafe_substeps"] = self.handler.failsafe_count
+            self.stats["ccd_events"] = self.handler.ccd_events
             self.stats["untaped_substeps"] = self.handler.untaped_substeps
             self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
             if self.handler._replay is not None:
@@ -286,6 +290,9 @@ def rollout(
     collisions: bool = True,
     max_derivative: float = DEFAULT_MAX_DERIVATIVE,
     checkpoint_every: int | None = None,
+    event_derivative: str = "mollified",
+    integrator: str = "semi_implicit",
+    integrator_options: dict | None = None,
 ) -> RolloutResult:
     """Simulates ``steps`` steps of ``dt`` [s] (each split into ``substeps``) from the model's
     initial state, differentiably.
@@ -308,6 +315,13 @@ def rollout(
             (:data:`UNMOLLIFIED_MAX_DERIVATIVE` for the unmollified ``-1/p'(t*)``).
         checkpoint_every: None keeps the whole rollout's tape; K recomputes segments of K steps
             in the backward (memory of one segment).
+        event_derivative: the event roots' derivative: "mollified" (robust division bounded by
+            ``max_derivative``) or "orthogonal" (real roots' exact derivative with only the part
+            that merges or separates a pair clamped to ``max_derivative``, eq.
+            ``orthogonal_clamping_real_side``; see :func:`collision.roots.orthogonal_clamped_jacobian`).
+        integrator: "semi_implicit" (explicit springs) or "implicit" (backward Euler, CG solve
+            differentiated implicitly: :class:`sim.implicit.ImplicitIntegrator`).
+        integrator_options: the implicit integrator's ``tolerance`` and ``max_iterations``.
 
     Returns:
         :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd`` and
@@ -319,12 +333,18 @@ def rollout(
     """
     steps, dt, substeps, particle_qd, body_qd, events = _check_args(
         model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative)
-    runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative))
+    if event_derivative not in DERIVATIVES:
+        raise ValueError(f"event_derivative must be one of {DERIVATIVES}, got {event_derivative!r}")
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    make_integrator(model, integrator, **(integrator_options or {}))  # checks the options before anything runs
+    runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
+                     integrator_options)
     has_p, has_b = particle_qd is not None, body_qd is not None
     p_in = particle_qd if has_p else torch.zeros((model.particle_count, 3), dtype=torch.float64)
     b_in = body_qd if has_b else torch.zeros((model.body_count, 6), dtype=torch.float64)
     q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, runner, has_p, has_b)
-    roots, coords = event_outputs(model, events, q, bq, dt, float(max_derivative))
+    roots, coords = event_outputs(model, events, q, bq, dt, float(max_derivative), event_derivative)
     return RolloutResult(
         particle_q=q, particle_qd=qd, body_q=bq, body_qd=bqd,
         event_roots=roots, event_coords=coords, stats=dict(runner.stats),

@@ -127,7 +127,7 @@ def test_inverse_benchmark_bank_shot_smoke(tmp_path):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "inverse"
     proc = subprocess.run([sys.executable, os.path.join(root, "benchmarks", "inverse.py"), "--scenes", "bank_shot",
-                           "--bank-iters", "1", "--jobs", "1", "--out", str(out)],
+                           "--bank-iters", "1", "--bank-seeds", "1", "--jobs", "1", "--out", str(out)],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "inverse_bank_shot.json").read_text())
@@ -135,5 +135,19 @@ def test_inverse_benchmark_bank_shot_smoke(tmp_path):
     assert ("miss", "newton (penalty, GD)") in methods and ("newton", "cma") in methods
     assert len(data["gradient_checks"]) == 3
     assert all(np.isfinite(c["relative_error"]) for c in data["gradient_checks"].values())
-    assert "| miss | proposed |" in (tmp_path / "inverse_bank_shot.md").read_text()
+    text = (tmp_path / "inverse_bank_shot.md").read_text()
+    assert "| miss | proposed |" in text and "| seed 0 | baseline |" in text and "Seeded misses" in text
+    assert data["profile"]["ccd_events"] >= 1  # Newton's start bounces off the wall
     assert (tmp_path / "inverse_bank_shot.png").stat().st_size > 0
+
+
+def test_seeded_starts_miss_the_wall_and_repeat(model):
+    """``--start seeded``: each seed's start bounces off the floor and passes the wall (the
+    rollout's contact record), lies in the stated ranges, and the same seed gives the same start."""
+    for seed in (0, 1):
+        v = np.asarray(B.seeded_start(model, seed))
+        assert B.SEEDED_SIDEWAYS[0] <= abs(v[0]) <= B.SEEDED_SIDEWAYS[1]
+        assert B.SEEDED_FORWARD[0] <= v[1] <= B.SEEDED_FORWARD[1] and B.SEEDED_DOWN[0] <= -v[2] <= B.SEEDED_DOWN[1]
+        hits = B.bounces(B.simulate(model, v)[1])
+        assert hits["floor"] >= 1 and hits["wall"] == 0
+        assert tuple(v) == B.seeded_start(model, seed)

@@ -163,3 +163,34 @@ def test_branch_tracker_merge_split_and_escaping_sign_flip():
 def test_bad_events_raise_value_error_naming_the_event(events, match):
     with pytest.raises(ValueError, match=match):
         rollout(_model(), STEPS, DT, 1, events=events)
+
+
+def test_orthogonal_event_derivative_in_the_rollout():
+    """``rollout(..., event_derivative="orthogonal")``: the same roots; a complex root's
+    gradient is the mollified one (the clamp is for real roots); an unknown name is refused."""
+    model = _model()
+    event = _face_event(model)
+    grads, roots = [], []
+    for derivative in ("mollified", "orthogonal"):
+        v = torch.tensor([[0.0, 1.0, -0.2]], dtype=torch.float64, requires_grad=True)
+        res = rollout(model, STEPS, DT, 1, particle_qd=v, events=[event], event_derivative=derivative)
+        slot = int(np.argmax(res.event_roots[0, :, 1].detach().numpy()))
+        res.event_roots[0, slot, 1].backward()
+        grads.append(v.grad.numpy().copy())
+        roots.append(res.event_roots.detach().numpy())
+    np.testing.assert_allclose(roots[1], roots[0], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-10, atol=1e-14)
+    with pytest.raises(ValueError, match="event_derivative"):
+        rollout(model, STEPS, DT, 1, events=[event], event_derivative="clamped")
+
+
+def test_branch_tracker_keeps_a_real_root_real_while_no_pair_merges():
+    """A real root running off towards infinity (q -> 0) is nearer the complex pair than its own
+    next value; with the count of real roots unchanged it cannot have joined the pair."""
+    tracker = BranchTracker(2)
+    tracker.update(np.array([[-0.066, -0.875], [-0.066, 0.875], [7.10, 0.0]]))
+    assert tracker.update(np.array([[-0.062, -0.888], [-0.062, 0.888], [56.6, 0.0]])) == 2
+    # a real pair merging into a complex one is still followed (the count changes)
+    tracker = BranchTracker(2)
+    tracker.update(np.array([[-1.0, 0.0], [0.9, 0.0], [1.1, 0.0]]))
+    assert tracker.update(np.array([[-1.0, 0.0], [1.0, -0.05], [1.0, 0.05]])) == 2

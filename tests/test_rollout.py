@@ -133,6 +133,8 @@ def test_particle_bouncing_off_tilted_box_matches_finite_differences(friction, v
     rows = [(0, 0), (0, 1), (0, 2)]
     jac, res = _jacobian(model, 20, 4, v0, "particle", rows)
     assert res.stats["contact_substeps"] >= 1 and res.stats["failsafe_substeps"] == 0
+    # one particle meets the box: every CCD event is a vertex-face hit of it, at least the impact
+    assert res.stats["ccd_events"] >= 1
     fd = _fd_jacobian(model, 20, 4, v0, "particle", rows)
     assert _rel(jac, fd) < GRAD_RTOL
     # transversal: the mollifier is inactive, the unmollified derivative is the same

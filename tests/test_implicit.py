@@ -1,0 +1,215 @@
+"""Implicit (backward-Euler) cloth: :class:`sim.implicit.ImplicitIntegrator`.
+
+Ground truth: the Baraff-Witkin step assembled as a dense matrix in numpy from the model's
+springs (an independent implementation of the formula, solved by LU), central finite
+differences of the same forward, and closed-form free fall."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from sim.builder import ModelBuilder
+from sim.implicit import ImplicitIntegrator, SolveError
+from sim.integrator import SemiImplicitIntegrator
+
+
+def _cloth(n=4, stiffness=200.0, damping=0.5, pinned=(0,), tilt=0.3, cell=0.1):
+    b = ModelBuilder()
+    rot = (np.sin(tilt / 2), 0.0, 0.0, np.cos(tilt / 2))
+    b.add_cloth_grid((0.0, 0.0, 1.0), rot, n, n, cell, cell, density=0.2, stretch_stiffness=stiffness,
+                     shear_stiffness=0.5 * stiffness, bend_stiffness=0.1 * stiffness, damping=damping,
+                     velocity=(0.1, -0.2, 0.3), pinned=pinned)
+    model = b.finalize()
+    # stretch it a little (and perturb) so every spring is loaded, some compressed
+    rng = np.random.default_rng(0)
+    q = model.particle_q.numpy() * np.array([1.05, 0.97, 1.0]) + rng.normal(scale=0.003, size=(model.particle_count, 3))
+    model.particle_q.assign(q)
+    return model
+
+
+def _dense_step(model, h):
+    """x1, v1 of one backward-Euler step, assembled and solved densely in numpy."""
+    x = model.particle_q.numpy().astype(np.float64)
+    v = model.particle_qd.numpy().astype(np.float64)
+    w = model.particle_inv_mass.numpy()
+    springs = model.spring_indices.numpy().reshape(-1, 2)
+    rest, ke, kd = (a.numpy() for a in (model.spring_rest_length, model.spring_stiffness, model.spring_damping))
+    n = len(x)
+    f = np.zeros((n, 3))
+    kx = np.zeros((3 * n, 3 * n))
+    kv = np.zeros((3 * n, 3 * n))
+    for s, (i, j) in enumerate(springs):
+        d = x[i] - x[j]
+        length = np.linalg.norm(d)
+        u = d / length
+        tension = ke[s] * (length - rest[s]) + kd[s] * u @ (v[i] - v[j])
+        f[i] -= tension * u
+        f[j] += tension * u
+        nn = np.outer(u, u)
+        block_x = ke[s] * (nn + max(1.0 - rest[s] / length, 0.0) * (np.eye(3) - nn))
+        block_v = kd[s] * nn
+        for blk, mat in ((block_x, kx), (block_v, kv)):
+            for a, b_, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+                mat[3 * a:3 * a + 3, 3 * b_:3 * b_ + 3] += sign * blk
+    g = np.asarray(model.gravity, dtype=np.float64)
+    free = w > 0
+    mass = np.where(free, 1.0 / np.where(free, w, 1.0), 0.0)
+    A = np.diag(np.repeat(mass, 3)) + h * kv + h * h * kx
+    # a pinned particle does not move over the step: its share of h^2 Kx v0 is zero
+    rhs = (h * (f + mass[:, None] * g)).reshape(-1) - h * h * kx @ np.where(free[:, None], v, 0.0).reshape(-1)
+    keep = np.repeat(free, 3)
+    dv = np.zeros(3 * n)
+    dv[keep] = np.linalg.solve(A[np.ix_(keep, keep)], rhs[keep])
+    v1 = np.where(free[:, None], v + dv.reshape(n, 3), 0.0)
+    x1 = np.where(free[:, None], x + h * v1, x)
+    return x1, v1
+
+
+def test_one_step_equals_the_dense_baraff_witkin_solve():
+    model = _cloth()
+    h = 1.0 / 60.0
+    integ = ImplicitIntegrator(model, tolerance=1e-13)
+    s0, s1 = model.state(), model.state()
+    integ.step(s0, s1, h)
+    x1, v1 = _dense_step(model, h)
+    np.testing.assert_allclose(s1.particle_qd.numpy(), v1, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(s1.particle_q.numpy(), x1, rtol=1e-11, atol=1e-12)
+    assert 1 <= integ.iterations < 200
+    assert np.all(s1.particle_qd.numpy()[0] == 0.0)  # the pinned corner
+
+
+def test_free_particles_fall_as_closed_form_backward_euler():
+    """No springs loaded (a single particle): v1 = v0 + h g, x1 = x0 + h v1 exactly."""
+    b = ModelBuilder()
+    b.add_particle((0.0, 0.0, 1.0), mass=0.2, velocity=(1.0, 0.0, 0.0))
+    model = b.finalize()
+    integ = ImplicitIntegrator(model)
+    s0, s1 = model.state(), model.state()
+    integ.step(s0, s1, 0.01, substeps=2)
+    h = 0.005
+    v = np.array([1.0, 0.0, -9.81 * 2 * h])
+    x = np.array([2 * h, 0.0, 1.0 - 9.81 * h * h * (1 + 2)])
+    np.testing.assert_allclose(s1.particle_qd.numpy()[0], v, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(s1.particle_q.numpy()[0], x, rtol=1e-14, atol=1e-14)
+
+
+def _final_loss(model, x0, v0, steps, h, weights, grad=False):
+    integ = ImplicitIntegrator(model, requires_grad=grad, tolerance=1e-14)
+    s = model.state(requires_grad=grad)
+    s.particle_q.assign(x0)
+    s.particle_qd.assign(v0)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=grad)
+    tape = wp.Tape()
+    states = [s]
+    with tape:
+        for _ in range(steps):
+            nxt = model.state(requires_grad=grad)
+            integ.step(states[-1], nxt, h)
+            states.append(nxt)
+        wp.launch(_weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_q, states[-1].particle_qd,
+                                                                     weights], outputs=[loss])
+    return tape, states, loss
+
+
+@wp.kernel
+def _weighted_sum(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d),
+                  out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(out, 0, wp.dot(x[i], w[i]) + wp.float64(0.1) * wp.dot(v[i], w[i]))
+
+
+def test_gradient_through_implicit_steps_matches_central_differences():
+    """Three steps of 1/60 s with stiff springs: d(loss)/d(x0, v0) by the tape (implicit
+    adjoint of every solve) against central differences of the same forward."""
+    model = _cloth(n=3, stiffness=2000.0)
+    h, steps = 1.0 / 60.0, 3
+    x0 = model.particle_q.numpy().copy()
+    v0 = model.particle_qd.numpy().copy()
+    rng = np.random.default_rng(1)
+    weights = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
+    tape, states, loss = _final_loss(model, x0, v0, steps, h, weights, grad=True)
+    tape.backward(loss)
+    gx, gv = states[0].particle_q.grad.numpy().copy(), states[0].particle_qd.grad.numpy().copy()
+    eps = 1e-6
+    free = np.flatnonzero(model.particle_inv_mass.numpy() > 0)
+    for which, grad in (("x", gx), ("v", gv)):
+        for i in free[:4]:
+            for k in range(3):
+                vals = []
+                for sign in (1.0, -1.0):
+                    xx, vv = x0.copy(), v0.copy()
+                    (xx if which == "x" else vv)[i, k] += sign * eps
+                    vals.append(float(_final_loss(model, xx, vv, steps, h, weights)[2].numpy()[0]))
+                fd = (vals[0] - vals[1]) / (2 * eps)
+                assert grad[i, k] == pytest.approx(fd, rel=1e-5, abs=1e-7), (which, i, k, grad[i, k], fd)
+
+
+def test_stiff_cloth_is_stable_where_explicit_diverges():
+    """A 16x16 cloth hanging from two corners with stretch stiffness 1e3 N/m at one 1/60 s step:
+    semi-implicit Euler explodes; backward Euler stays within the cloth's size of its start."""
+    b = ModelBuilder()
+    b.add_cloth_grid((0.0, 0.0, 1.0), None, 16, 16, 0.03, 0.03, density=0.2, stretch_stiffness=1e3,
+                     shear_stiffness=1e2, bend_stiffness=10.0, damping=0.1, pinned=(0, 16))
+    model = b.finalize()
+    for cls, bounded in ((SemiImplicitIntegrator, False), (ImplicitIntegrator, True)):
+        integ = cls(model)
+        s0, s1 = model.state(), model.state()
+        with np.errstate(all="ignore"):
+            for _ in range(60):
+                integ.step(s0, s1, 1.0 / 60.0)
+                s0, s1 = s1, s0
+            q = s0.particle_q.numpy()
+            ok = bool(np.all(np.isfinite(q)) and np.abs(q - model.particle_q.numpy()).max() < 1.0)
+        assert ok == bounded, cls.__name__
+
+
+def test_bad_settings_and_the_iteration_cap():
+    model = _cloth()
+    with pytest.raises(ValueError, match="tolerance"):
+        ImplicitIntegrator(model, tolerance=0.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        ImplicitIntegrator(model, max_iterations=0)
+    integ = ImplicitIntegrator(model, max_iterations=1, tolerance=1e-14)
+    with pytest.raises(SolveError, match="max_iterations"):
+        integ.step(model.state(), model.state(), 1.0 / 60.0)
+
+
+def test_rollout_through_implicit_steps_and_contacts_matches_finite_differences():
+    """The rollout's gradient with ``integrator="implicit"``: a 3x3-cell cloth thrown onto a
+    tilted box (the hit, then resting contact with friction), directional derivatives of the
+    final positions in two random directions against central differences of the same forward."""
+    import torch
+
+    from sim.mesh_io import box_mesh
+    from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
+
+    b = ModelBuilder()
+    b.add_cloth_grid((-0.1, -0.12, 0.25), None, 3, 3, 0.08, 0.08, density=1.0, stretch_stiffness=400.0,
+                     shear_stiffness=100.0, bend_stiffness=10.0, damping=0.05)
+    b.add_static_mesh(*box_mesh((0.3, 0.3, 0.1)), rot=(np.sin(0.05), 0.0, 0.0, np.cos(0.05)))
+    b.set_contact(restitution=0.0, friction=0.4)
+    model = b.finalize()
+    P = model.particle_count
+    v0 = torch.tensor(np.tile([0.3, 0.2, -2.0], (P, 1)), dtype=torch.float64)
+    v0[:, 0] += torch.linspace(0.0, 0.1, P, dtype=torch.float64)
+    kw = {"integrator": "implicit", "integrator_options": {"tolerance": 1e-14},
+          "max_derivative": UNMOLLIFIED_MAX_DERIVATIVE}
+    dt, steps, substeps, eps = 1.0 / 60.0, 12, 2, 1e-6
+    rng = np.random.default_rng(1)
+    for _ in range(2):
+        d = torch.tensor(rng.normal(size=(P, 3)))
+        w = torch.tensor(rng.normal(size=(P, 3)))
+        v = v0.clone().requires_grad_()
+        res = rollout(model, steps, dt, substeps, particle_qd=v, **kw)
+        (res.particle_q[-1] * w).sum().backward()
+        grad = float((v.grad * d).sum())
+        losses = [float((rollout(model, steps, dt, substeps, particle_qd=v0 + s * eps * d, **kw).particle_q[-1] * w).sum())
+                  for s in (1, -1)]
+        fd = (losses[0] - losses[1]) / (2 * eps)
+        assert abs(grad - fd) < 1e-5 * abs(fd), (grad, fd)
+    assert res.stats["contact_substeps"] >= 10 and res.stats["failsafe_substeps"] == 0
+    assert float(res.particle_q[-1, :, 2].detach().min()) > 0.08  # resting on the box top
+    with pytest.raises(ValueError, match="integrator"):
+        rollout(model, 1, dt, 1, integrator="verlet")
+    with pytest.raises(ValueError, match="tolerance"):
+        rollout(model, 1, dt, 1, integrator="implicit", integrator_options={"tolerance": -1.0})
