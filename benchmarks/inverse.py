@@ -89,7 +89,7 @@ def bank_shot(args) -> dict:
     tasks = [(start, method, args.bank_iters) for start in starts for method in B.METHODS]
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         ours = list(pool.imap(run_bank_shot, tasks))
-        profile = pool.apply(profile_rollout, ("bank_shot",))
+    profile = fresh_profile("bank_shot")
     # Newton after the pool, alone on the machine (its wall time is not shared with our workers)
     import newton_ball
 
@@ -178,7 +178,7 @@ def _write_outputs(out: str, lines: list[str], data: dict):
 def _scene_prefix(args, scene: str) -> str:
     """Output prefix of ``scene``: ``--out`` (tunnel's, default ``results/inverse_tunnel``) with
     its ``_tunnel`` suffix replaced by the scene's name."""
-    base = args.out[: -len("_tunnel")] if args.out.endswith("_tunnel") else args.out
+    base = args.out.removesuffix("_tunnel")
     return f"{base}_{scene}"
 
 
@@ -212,6 +212,14 @@ def run_cloth(args):
     r["median_grad_norm"] = float(np.median(grads)) if grads else 0.0
     r["seconds_per_rollout"] = r["wall_time"] / max(r["rollouts"], 1)
     return {"seed": seed, "method": method, **r}
+
+
+def fresh_profile(scene: str) -> dict:
+    """:func:`profile_rollout` in a process of its own (its peak memory is that rollout's alone)."""
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(1) as pool:
+        return pool.apply(profile_rollout, (scene,))
 
 
 def profile_rollout(scene: str) -> dict:
@@ -282,8 +290,8 @@ def cloth_toss(args) -> dict:
     t0 = time.perf_counter()
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         runs = list(pool.imap(run_cloth, tasks))
-        profile = pool.apply(profile_rollout, ("cloth_toss",))
     total = time.perf_counter() - t0
+    profile = fresh_profile("cloth_toss")
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.jobs} worker(s)"
     lines = [
         f"# cloth_toss: seeds 0-{args.cloth_seeds - 1}, {args.cloth_iters} rollouts per method",
@@ -395,8 +403,8 @@ def tunnel(args) -> None:
                   f"{ve if ve is not None else float('nan'):>9.2e} {p['wall_time']:>8.1f} | "
                   f"{b['reached_target']!s:>8s} {b['stalled']!s:>7s} | "
                   f"{c['reached_target']!s:>5s} {c['rollouts']:>8d} {c['wall_time']:>8.1f}", flush=True)
-        profile = pool.apply(profile_rollout, ("tunnel",))
     total = time.perf_counter() - t0
+    profile = fresh_profile("tunnel")
 
     summary = {}
     for method in ("proposed", "baseline", "cma"):

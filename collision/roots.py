@@ -40,6 +40,12 @@ everywhere) and ``orthogonal`` (eq. ``orthogonal_clamping_real_side``: a real ro
 implicit derivative with only its component along the merging direction clamped to ``M``; complex
 and escaping roots keep the mollified one). See :func:`orthogonal_clamped_jacobian`."""
 
+ORTHOGONAL_ROOT_LIMIT = 1.0e3
+"""Real roots beyond this magnitude (of the polynomial scaled to a largest coefficient of 1) keep
+the mollified row under ``derivative="orthogonal"``: a nearly escaping root (``q`` small, ``t``
+near ``-a/q``) has an exact derivative growing like ``|t|^3 / |p'(t)|`` (1e16 at ``q = 1e-8``)
+that has nothing to do with a merging pair, and the robust division bounds it."""
+
 _DEVICE = "cpu"
 _initialised = False
 
@@ -181,8 +187,11 @@ def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFA
     as the roots merge (it tends to ``-(dv/dt(t_c))_perp / p''(t_c)``); it is evaluated from
     divided differences, without the cancellation of ``g - alpha n``. The clamp is taken on the
     polynomial scaled to a largest coefficient of 1 (``M`` unit-free, as for the mollified
-    derivative). Complex and escaping (``|t| >= t_max``) roots, and imaginary parts, keep the
-    rows of ``jacobian``.
+    derivative). Complex roots, roots beyond :data:`ORTHOGONAL_ROOT_LIMIT`, and imaginary parts
+    keep the rows of ``jacobian``. The split is taken in the space of *all* the coefficients
+    (``n = [t_c^2, t_c, 1]`` for a quadratic); the paper projects on ``(b^, c^)`` only, with the
+    leading one fixed at 1, so a loss that holds the leading coefficient fixed sees an extra,
+    bounded part along ``[t_c, 1]`` compared with the paper's equation.
 
     Args:
         p: coefficients (..., n), highest degree first, n = 3 (quadratic) or 4 (cubic).
@@ -208,7 +217,7 @@ def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFA
         pc = np.concatenate([np.zeros_like(pc[..., :1]), pc], axis=-1)  # as a cubic with q = 0
     q, a, b = pc[..., 0:1], pc[..., 1:2], pc[..., 2:3]  # (..., 1): broadcast over the root slots
     t = roots[..., 0]
-    real = (roots[..., 1] == 0.0) & (np.abs(t) < t_max) & np.isfinite(t)
+    real = (roots[..., 1] == 0.0) & (np.abs(t) <= min(ORTHOGONAL_ROOT_LIMIT, t_max)) & np.isfinite(t)
     t = np.where(real, t, 0.0)
     # critical points: roots of p'(t) = 3q t^2 + 2a t + b; the one nearest t (their common real
     # part when they are complex: the root is then isolated and the split still well defined)
@@ -247,9 +256,11 @@ def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFA
     # a double root (p'(t) = 0) or a non-finite split: the sign of the mollified row's parallel part
     moll = np.take(out, 0, axis=-2) * scale[..., None, :]  # d Re / d(unit-scaled p)
     sign_moll = np.sign((moll * v_c).sum(-1))
-    alpha = np.where(np.isfinite(alpha), alpha, sign_moll * np.inf)
-    alpha = np.clip(alpha, -max_derivative, max_derivative)
-    row = (alpha[..., None] * v_c + perp) / scale[..., None, :]
+    with np.errstate(invalid="ignore", over="ignore"):
+        # a zero sign (no mollified direction) gives a NaN row here: the mollified row is kept
+        alpha = np.where(np.isfinite(alpha), alpha, sign_moll * np.inf)
+        alpha = np.clip(alpha, -max_derivative, max_derivative)
+        row = (alpha[..., None] * v_c + perp) / scale[..., None, :]
     ok = real & np.isfinite(row).all(-1)
     out[..., 0, :] = np.where(ok[..., None], row, out[..., 0, :])
     return out

@@ -233,6 +233,8 @@ def simulate(
     model = build_model(build, args)
     kind = getattr(args, "integrator", "semi_implicit")
     tolerance = getattr(args, "cg_tolerance", None)
+    if tolerance is not None and kind != "implicit":
+        raise ValueError("--cg-tolerance applies to --integrator implicit only")
     integrator = make_integrator(model, kind, **({"tolerance": tolerance} if kind == "implicit" and tolerance else {}))
     handler = ImpulseCollisionHandler(
         model, differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")

@@ -281,7 +281,8 @@ class BranchTracker:
             # no pair merged or split since the last update: a real root stays real, a complex
             # one complex on its side of the axis (a real root running off towards infinity
             # is otherwise nearer a complex pair than its own new value: seed 42 of tunnel)
-            same = [k for k in finite if (r[k, 1] == 0.0) == (im0 == 0.0) and np.sign(r[k, 1]) == np.sign(im0)]
+            # (from all three: a real root may just have run past ESCAPING)
+            same = [k for k in range(3) if (r[k, 1] == 0.0) == (im0 == 0.0) and np.sign(r[k, 1]) == np.sign(im0)]
             candidates = same or finite
         nearest = min(candidates, key=lambda k: abs(r[k, 0] - re0) + abs(r[k, 1] - im0))
         if im0 == 0.0 and r[nearest, 1] != 0.0:

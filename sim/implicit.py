@@ -158,7 +158,9 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         self.total_iterations += self.iterations
         tape = active_tape()
         if requires_grad and tape is not None:
-            tape.record_func(backward=lambda: self._solve_adjoint(x0, b, dv, h), arrays=[x0, b, dv])
+            # only arrays with gradients (the input state may have none: model arrays only)
+            tape.record_func(backward=lambda: self._solve_adjoint(x0, b, dv, h),
+                             arrays=[a for a in (x0, b, dv) if a.requires_grad])
         wp.launch(implicit_update, dim=n, inputs=[x0, v0, dv, m.particle_inv_mass, wp.float64(h)],
                   outputs=[pred.particle_q, pred.particle_qd], device=d)
 

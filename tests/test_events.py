@@ -194,3 +194,10 @@ def test_branch_tracker_keeps_a_real_root_real_while_no_pair_merges():
     tracker = BranchTracker(2)
     tracker.update(np.array([[-1.0, 0.0], [0.9, 0.0], [1.1, 0.0]]))
     assert tracker.update(np.array([[-1.0, 0.0], [1.0, -0.05], [1.0, 0.05]])) == 2
+
+
+def test_branch_tracker_follows_a_real_root_past_the_escaping_bound():
+    """The only real root runs past 1e100 (q -> 0) while a complex pair stays: still the real root."""
+    tracker = BranchTracker(2)
+    tracker.update(np.array([[-0.06, -0.9], [-0.06, 0.9], [1e90, 0.0]]))
+    assert tracker.update(np.array([[-0.06, -0.9], [-0.06, 0.9], [2e100, 0.0]])) == 2

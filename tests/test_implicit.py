@@ -213,3 +213,15 @@ def test_rollout_through_implicit_steps_and_contacts_matches_finite_differences(
         rollout(model, 1, dt, 1, integrator="verlet")
     with pytest.raises(ValueError, match="tolerance"):
         rollout(model, 1, dt, 1, integrator="implicit", integrator_options={"tolerance": -1.0})
+
+
+def test_taped_step_from_a_state_without_gradients():
+    """``requires_grad=True`` with an input State that has no gradient arrays (differentiating
+    w.r.t. model arrays only): the solve's adjoint is recorded for the arrays that have them."""
+    model = _cloth(n=2)
+    integ = ImplicitIntegrator(model, requires_grad=True)
+    s0, s1 = model.state(), model.state(requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        integ.step(s0, s1, 1.0 / 60.0)
+    assert np.all(np.isfinite(s1.particle_q.numpy()))

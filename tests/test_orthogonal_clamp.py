@@ -169,3 +169,13 @@ def test_bad_derivative_names_the_argument():
         quadratic_roots(torch.tensor([1.0, 0.0, -1.0], dtype=torch.float64), derivative="nope")
     with pytest.raises(ValueError, match="3 or 4"):
         orthogonal_clamped_jacobian(np.ones((1, 5)), np.zeros((1, 4, 2)), np.zeros((1, 4, 2, 5)))
+
+
+def test_a_nearly_escaping_root_keeps_the_mollified_row():
+    """q = 1e-8: a real root near -a/q = -1e8 is no merging pair; its exact derivative is about
+    1e16, the mollified one bounded. The orthogonal Jacobian keeps the mollified row there."""
+    roots, jac, orth = _orthogonal([1e-8, 1.0, -1.0, 0.1], 1000.0)
+    far = int(np.argmax(np.abs(roots[:, 0])))
+    assert abs(roots[far, 0]) > 1e7 and roots[far, 1] == 0.0
+    np.testing.assert_array_equal(orth[far], jac[far])
+    assert np.all(np.isfinite(orth)) and np.abs(orth[far]).max() <= 1e4
