@@ -248,8 +248,7 @@ def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFA
     v_t = t[..., None] ** powers[4 - n:]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         alpha = -(v_t * v_c).sum(-1) / nn / dp
-        perp_exact = np.where(has_real & (d != 0.0),
-                              1.0, 0.0)[..., None] * -(w - ((w * v_c).sum(-1) / nn)[..., None] * v_c) / d[..., None]
+        perp_exact = -(w - ((w * v_c).sum(-1) / nn)[..., None] * v_c) / d[..., None]
         g = -v_t / dp[..., None]
         perp_direct = g - (alpha[..., None] * v_c)
     perp = np.where((has_real & (d != 0.0))[..., None], perp_exact, perp_direct)

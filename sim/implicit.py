@@ -42,6 +42,16 @@ DEFAULT_TOLERANCE = 1.0e-8
 DEFAULT_MAX_ITERATIONS = 2000
 
 
+def check_options(tolerance: float = DEFAULT_TOLERANCE, max_iterations: int = DEFAULT_MAX_ITERATIONS) -> None:
+    """Raises ``ValueError`` naming the option for a CG tolerance that is not a positive finite
+    number or an iteration cap that is not an integer >= 1."""
+    if isinstance(tolerance, bool) or not (isinstance(tolerance, (int, float)) and np.isfinite(tolerance)
+                                           and tolerance > 0.0):
+        raise ValueError(f"tolerance must be a positive finite number, got {tolerance!r}")
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
+        raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+
+
 class SolveError(RuntimeError):
     """Conjugate gradients did not reach the tolerance within the iteration cap."""
 
@@ -63,10 +73,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
     def __init__(self, model: Model, requires_grad: bool | None = None, tolerance: float = DEFAULT_TOLERANCE,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS):
         super().__init__(model, requires_grad)
-        if not (isinstance(tolerance, (int, float)) and np.isfinite(tolerance) and tolerance > 0.0):
-            raise ValueError(f"tolerance must be a positive finite number, got {tolerance!r}")
-        if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
-            raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+        check_options(tolerance, max_iterations)
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.iterations = 0

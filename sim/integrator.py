@@ -268,16 +268,31 @@ INTEGRATORS = ("semi_implicit", "implicit")
 (:class:`sim.implicit.ImplicitIntegrator`)."""
 
 
+def check_integrator(kind: str, options: dict | None = None) -> None:
+    """Raises ``ValueError`` for an unknown integrator ``kind`` or options it does not take
+    (the implicit one's ``tolerance`` and ``max_iterations``), before anything is built."""
+    options = options or {}
+    if kind == "semi_implicit":
+        if options:
+            raise ValueError(f"the semi_implicit integrator takes no options, got {sorted(options)}")
+    elif kind == "implicit":
+        from sim.implicit import check_options
+
+        unknown = sorted(set(options) - {"tolerance", "max_iterations"})
+        if unknown:
+            raise ValueError(f"the implicit integrator's options are tolerance and max_iterations, got {unknown}")
+        check_options(**options)
+    else:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {kind!r}")
+
+
 def make_integrator(model: Model, kind: str = "semi_implicit", requires_grad: bool | None = None,
                     **options) -> SemiImplicitIntegrator:
     """The integrator ``kind`` (one of :data:`INTEGRATORS`) for ``model``; ``options`` go to the
     implicit one (``tolerance``, ``max_iterations``)."""
-    if kind == "semi_implicit":
-        if options:
-            raise ValueError(f"the semi_implicit integrator takes no options, got {sorted(options)}")
-        return SemiImplicitIntegrator(model, requires_grad=requires_grad)
+    check_integrator(kind, options)
     if kind == "implicit":
         from sim.implicit import ImplicitIntegrator
 
         return ImplicitIntegrator(model, requires_grad=requires_grad, **options)
-    raise ValueError(f"integrator must be one of {INTEGRATORS}, got {kind!r}")
+    return SemiImplicitIntegrator(model, requires_grad=requires_grad)

@@ -32,7 +32,7 @@ import warp as wp
 from collision.response import ImpulseCollisionHandler
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from sim.events import check_events, event_outputs
-from sim.integrator import INTEGRATORS, SemiImplicitIntegrator, make_integrator
+from sim.integrator import SemiImplicitIntegrator, check_integrator, make_integrator
 from sim.model import Model, State
 
 UNMOLLIFIED_MAX_DERIVATIVE = 1e300
@@ -335,9 +335,7 @@ def rollout(
         model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative)
     if event_derivative not in DERIVATIVES:
         raise ValueError(f"event_derivative must be one of {DERIVATIVES}, got {event_derivative!r}")
-    if integrator not in INTEGRATORS:
-        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-    make_integrator(model, integrator, **(integrator_options or {}))  # checks the options before anything runs
+    check_integrator(integrator, integrator_options)
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
                      integrator_options)
     has_p, has_b = particle_qd is not None, body_qd is not None

@@ -169,6 +169,12 @@ def test_bad_settings_and_the_iteration_cap():
         ImplicitIntegrator(model, tolerance=0.0)
     with pytest.raises(ValueError, match="max_iterations"):
         ImplicitIntegrator(model, max_iterations=0)
+    from sim.integrator import make_integrator
+
+    with pytest.raises(ValueError, match="tolerance and max_iterations"):
+        make_integrator(model, "implicit", rtol=1e-6)
+    with pytest.raises(ValueError, match="semi_implicit integrator takes no options"):
+        make_integrator(model, "semi_implicit", tolerance=1e-6)
     integ = ImplicitIntegrator(model, max_iterations=1, tolerance=1e-14)
     with pytest.raises(SolveError, match="max_iterations"):
         integ.step(model.state(), model.state(), 1.0 / 60.0)
