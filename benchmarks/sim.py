@@ -2,8 +2,10 @@
 
     python benchmarks/sim.py [--dims 32 64] [--frames 20] [--substeps 16] [--repeats 3] [--scene-steps 300]
 
-Two tables: the force + integration part against Warp's CPU cloth peers (below), and the full
-steps per second with collisions of each simulation scene (:func:`scene_table`).
+Three tables: the force + integration part against Warp's CPU cloth peers (below), the full
+steps per second with collisions of each simulation scene (:func:`scene_table`), and the cost
+against cloth size, explicit and implicit, with Newton's cloth solvers beside it
+(:func:`size_table`; ``--sizes-only`` runs just that one).
 
 The scene is Warp's own cloth benchmark (``warp/examples/benchmarks/benchmark_cloth.py``): a
 ``dim x dim`` grid, spacing 0.1 m, particle mass 0.1 kg, two pinned corners, structural + shear +
@@ -172,11 +174,20 @@ def main(argv=None):
     ap.add_argument("--substeps", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--scenes-only", action="store_true", help="only the per-scene table with collisions")
+    ap.add_argument("--sizes-only", action="store_true", help="only the cloth-size table (and Newton beside it)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[16, 32, 64, 128],
+                    help="cloth cells per side of the size table (default 16 32 64 128)")
+    ap.add_argument("--size-steps", type=int, default=40, help="steps per run of the size table (default 40)")
+    ap.add_argument("--newton-sizes", type=int, nargs="*", default=[16, 32, 64],
+                    help="cells per side Newton runs at (default 16 32 64; none: no Newton)")
     ap.add_argument("--scene-steps", type=int, default=300,
                     help="steps per scene in the full-step table (default 300)")
     args = ap.parse_args(argv)
     if args.scenes_only:
         scene_table(args.scene_steps)
+        return
+    if args.sizes_only:
+        size_table(args.sizes, args.size_steps, args.newton_sizes)
         return
 
     import torch
@@ -237,6 +248,8 @@ def main(argv=None):
 
     print()
     scene_table(args.scene_steps)
+    print()
+    size_table(args.sizes, args.size_steps, args.newton_sizes)
 
 
 def scene_table(steps: int) -> None:
@@ -295,6 +308,161 @@ def scene_table(steps: int) -> None:
     print("contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
           "substeps that needed rigid impact zones; collision cost: time spent in collision handling "
           "per step, in multiples of the step without it (forces + integration + plane contacts).")
+
+
+def explicit_substeps_estimate(model, dt: float = FRAME_DT, safety: float = 1.0) -> int:
+    """Substeps per ``dt`` that keep semi-implicit Euler of the model's springs stable: the
+    highest frequency is bounded (Gershgorin) by ``w^2 <= max_i 4 sum_{springs at i} k / m_i``,
+    and the step must stay below ``2 / w`` (times ``safety``); rounded up to a power of two."""
+    idx = model.spring_indices.numpy().reshape(-1, 2)
+    k = model.spring_stiffness.numpy()
+    w_inv = model.particle_inv_mass.numpy()
+    load = np.zeros(model.particle_count)
+    np.add.at(load, idx[:, 0], k)
+    np.add.at(load, idx[:, 1], k)
+    omega = np.sqrt(4.0 * np.max(load * w_inv))
+    need = dt / (safety * 2.0 / omega)
+    return int(2 ** max(0, int(np.ceil(np.log2(max(need, 1.0))))))
+
+
+class _TimedHandler:
+    """The collision handler, its wall time summed (so a run splits into force + integration and
+    collision handling on the same states)."""
+
+    def __init__(self, handler):
+        self.handler, self.seconds = handler, 0.0
+
+    def __call__(self, state_in, state_pred, h):
+        t0 = time.perf_counter()
+        try:
+            return self.handler(state_in, state_pred, h)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def save_stats(self):
+        return self.handler.save_stats()
+
+    def restore_stats(self, stats) -> None:
+        self.handler.restore_stats(stats)
+
+
+def _cloth_drop_run(cells: int, integrator: str, substeps: int, steps: int) -> dict:
+    """``cloth_drop`` at ``cells`` per side for ``steps`` steps from the start: ms per step (the
+    integrator's ``step``: in all, and without the collision handler's share, i.e. forces +
+    integration + plane contacts), penetrations and the energy peak, or ``{"diverged": True}``."""
+    from collision.response import ImpulseCollisionHandler
+    from scenes import cloth_drop
+    from scenes.sim_common import EnergyMeter, build_model, default_args
+    from sim.integrator import make_integrator
+    from sim.penetration import PenetrationChecker
+
+    model = build_model(cloth_drop.build, default_args(cloth_res=cells))
+    integ = make_integrator(model, integrator)
+    timed = _TimedHandler(ImpulseCollisionHandler(model))
+    integ.collision_handler = timed
+    checker = PenetrationChecker(model)
+    energy = EnergyMeter(model)
+    s0, s1 = model.state(), model.state()
+    e0 = sum(energy(s0))
+    e_max, pen, wall = e0, 0, 0.0
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        integ.step(s0, s1, FRAME_DT, substeps)
+        wall += time.perf_counter() - t0
+        s0, s1 = s1, s0
+        e = sum(energy(s0))
+        if not np.isfinite(e) or e > 100.0 * abs(e0):
+            return {"diverged": True}
+        e_max = max(e_max, e)
+        pen += checker.check(s0).count
+    return {"diverged": False, "ms": 1e3 * wall / steps, "force_ms": 1e3 * (wall - timed.seconds) / steps,
+            "penetrations": pen, "energy_peak": e_max / e0,
+            "refined": int(getattr(integ, "refinements", 0)), "cg": int(getattr(integ, "total_iterations", 0)),
+            "particles": model.particle_count}
+
+
+def _growth_exponent(particles, ms) -> float:
+    """Least-squares slope of log(ms) against log(particles)."""
+    if len(ms) < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(particles), np.log(ms), 1)[0])
+
+
+def size_table(cells_list=(16, 32, 64, 128), steps: int = 40, newton_cells=(16, 32, 64)) -> dict:
+    """Cost against cloth size on ``cloth_drop`` (16 to 128 cells per side, the cloth's size,
+    density and springs kept), ``steps`` steps of 1/60 s from the start (the fall, the hit on the
+    sphere at step ~15 and the start of settling). Explicit runs at the substeps its stability
+    needs (:func:`explicit_substeps_estimate`, doubled until it does not diverge), implicit at 1
+    substep (it halves impact substeps itself: ``refined``). Each is timed for the force +
+    integration part (the step's time less the collision handler's: forces, the implicit solves
+    and contact passes, plane contacts) and the full step with collisions, on the same run. The growth exponent is the fitted slope of log(ms per step) against log(vertex
+    count). Newton 1.8's semi-implicit, XPBD and VBD cloth on the same drop at ``newton_cells``
+    (``benchmarks/newton_cloth.py``) are timed in the same run, ms per frame of 1/60 s."""
+    print(f"Cost against cloth size: cloth_drop, {steps} steps of 1/60 s from the start, one CPU thread")
+    head = (f"{'cells':>5s} {'vertices':>8s} | {'integrator':10s} {'substeps':>8s} | {'force+int ms/step':>17s} "
+            f"{'full ms/step':>12s} {'full steps/s':>12s} | {'penetrations':>12s} {'energy peak':>11s} "
+            f"{'refined':>7s}")
+    print(head)
+    print("-" * len(head))
+    rows = []
+    for cells in cells_list:
+        from scenes import cloth_drop
+        from scenes.sim_common import build_model, default_args
+
+        probe = build_model(cloth_drop.build, default_args(cloth_res=cells))
+        for kind in ("semi_implicit", "implicit"):
+            sub = explicit_substeps_estimate(probe) if kind == "semi_implicit" else 1
+            while True:
+                full = _cloth_drop_run(cells, kind, sub, steps)
+                if not full["diverged"] or kind == "implicit" or sub >= 1024:
+                    break
+                sub *= 2
+            if full["diverged"]:
+                print(f"{cells:5d} {probe.particle_count:8d} | {kind:10s} {sub:8d} | diverged")
+                continue
+            row = {"cells": cells, "vertices": probe.particle_count, "integrator": kind, "substeps": sub, **full}
+            rows.append(row)
+            print(f"{cells:5d} {probe.particle_count:8d} | {kind:10s} {sub:8d} | {row['force_ms']:17.1f} "
+                  f"{row['ms']:12.1f} {1e3 / row['ms']:12.2f} | {row['penetrations']:12d} "
+                  f"{row['energy_peak']:11.2f} {row['refined']:7d}", flush=True)
+    print("-" * len(head))
+    for kind in ("semi_implicit", "implicit"):
+        sel = [r for r in rows if r["integrator"] == kind]
+        v = [r["vertices"] for r in sel]
+        print(f"growth exponent (ms ~ vertices^p), {kind}: force+integration p = "
+              f"{_growth_exponent(v, [r['force_ms'] for r in sel]):.2f}, full step p = "
+              f"{_growth_exponent(v, [r['ms'] for r in sel]):.2f}")
+    newton_rows = []
+    if newton_cells:
+        sys.path.insert(0, HERE)
+        try:
+            import newton_cloth
+        except ImportError as exc:
+            print(f"Newton not available ({exc}); pip install -e '.[bench]'")
+            return {"rows": rows, "newton": newton_rows}
+        print()
+        print(f"Newton {__import__('newton').__version__} on the same drop (CPU, its examples' settings), ms per frame "
+              f"of 1/60 s, next to ours (implicit, 1 substep, full step):")
+        head = (f"{'cells':>5s} | {'simulator':28s} {'substeps':>8s} | {'ms/frame':>9s} | "
+                f"{'passes through the sphere':>25s}")
+        print(head)
+        print("-" * len(head))
+        for cells in newton_cells:
+            ours = [r for r in rows if r["cells"] == cells and r["integrator"] == "implicit"]
+            if ours:
+                r = ours[0]
+                print(f"{cells:5d} | {'tunnelsim implicit':28s} {r['substeps']:8d} | {r['ms']:9.1f} | "
+                      f"{('yes' if r['penetrations'] else 'no'):>25s}")
+            for solver in newton_cloth.SOLVERS:
+                res = newton_cloth.run_newton_cloth(cells, solver, frames=steps)
+                newton_rows.append(res)
+                if res.get("error"):
+                    print(f"{cells:5d} | {'newton ' + solver:28s} {'-':>8s} | {'error':>9s} | {res['error'][:40]}")
+                    continue
+                print(f"{cells:5d} | {'newton ' + solver:28s} {res['substeps']:8d} | {res['ms_per_frame']:9.1f} | "
+                      f"{('yes' if res['passes_through_sphere'] else 'no'):>25s}", flush=True)
+        print("-" * len(head))
+    return {"rows": rows, "newton": newton_rows}
 
 
 if __name__ == "__main__":

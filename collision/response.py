@@ -535,6 +535,19 @@ class ImpulseCollisionHandler:
 
     # ------------------------------------------------------------------------------------------
 
+    _COUNTERS = ("failsafe_count", "ccd_events", "untaped_substeps", "active_set_repairs", "unsettled_active_sets")
+    _LAST = ("last_contacts", "last_normals", "last_times")
+
+    def save_stats(self) -> dict:
+        """The statistics (life counters, last call's contacts), for :meth:`restore_stats` after
+        calls whose result an integrator discards (a trial pass, a rejected substep)."""
+        return {c: getattr(self, c) for c in self._COUNTERS + self._LAST}
+
+    def restore_stats(self, stats: dict) -> None:
+        """Puts back the statistics of :meth:`save_stats`."""
+        for c, v in stats.items():
+            setattr(self, c, v)
+
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))

@@ -27,12 +27,14 @@ f64 = wp.float64
 def mass_operator(
     p: wp.array(dtype=wp.vec3d),
     inv_mass: wp.array(dtype=wp.float64),
+    fixed: wp.array(dtype=wp.int32),
     y: wp.array(dtype=wp.vec3d),
 ):
-    """``y_i = m_i p_i`` for free particles, ``y_i = p_i`` for pinned ones (identity rows)."""
+    """``y_i = m_i p_i`` for free particles, ``y_i = p_i`` for pinned or ``fixed`` ones (identity
+    rows)."""
     i = wp.tid()
     w = inv_mass[i]
-    if w == f64(0.0):
+    if w == f64(0.0) or fixed[i] != 0:
         y[i] = p[i]
     else:
         y[i] = p[i] / w
@@ -57,13 +59,15 @@ def spring_operator(
     stiffness: wp.array(dtype=wp.float64),
     damping: wp.array(dtype=wp.float64),
     inv_mass: wp.array(dtype=wp.float64),
+    fixed: wp.array(dtype=wp.int32),
     coef_x: wp.float64,
     coef_v: wp.float64,
     p: wp.array(dtype=wp.vec3d),
     y: wp.array(dtype=wp.vec3d),
 ):
     """Adds ``(coef_x Kx + coef_v Kd) (p_i - p_j)`` of spring ``tid`` to ``y_i`` and subtracts it
-    from ``y_j``; pinned particles neither receive nor contribute (their ``p`` counts as 0)."""
+    from ``y_j``; pinned and ``fixed`` particles neither receive nor contribute (their ``p``
+    counts as 0)."""
     s = wp.tid()
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
@@ -71,8 +75,8 @@ def spring_operator(
     if not ok:
         return
     zero = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
-    free_i = inv_mass[i] > f64(0.0)
-    free_j = inv_mass[j] > f64(0.0)
+    free_i = inv_mass[i] > f64(0.0) and fixed[i] == 0
+    free_j = inv_mass[j] > f64(0.0) and fixed[j] == 0
     pi = zero
     pj = zero
     if free_i:
@@ -96,6 +100,7 @@ def spring_diagonal(
     stiffness: wp.array(dtype=wp.float64),
     damping: wp.array(dtype=wp.float64),
     inv_mass: wp.array(dtype=wp.float64),
+    fixed: wp.array(dtype=wp.int32),
     coef_x: wp.float64,
     coef_v: wp.float64,
     diag: wp.array(dtype=wp.vec3d),
@@ -111,9 +116,9 @@ def spring_diagonal(
     nn = wp.cw_mul(n, n)
     one = wp.vec3d(f64(1.0), f64(1.0), f64(1.0))
     k = (coef_x * stiffness[s]) * (nn + stretch * (one - nn)) + (coef_v * damping[s]) * nn
-    if inv_mass[i] > f64(0.0):
+    if inv_mass[i] > f64(0.0) and fixed[i] == 0:
         wp.atomic_add(diag, i, k)
-    if inv_mass[j] > f64(0.0):
+    if inv_mass[j] > f64(0.0) and fixed[j] == 0:
         wp.atomic_add(diag, j, k)
 
 
@@ -156,6 +161,83 @@ def implicit_update(
     v_out[i] = v1
 
 
+# ------------------------------------------------------------------ contacts in the solve
+
+
+@wp.func
+def changed(x_pred: wp.vec3d, v_pred: wp.vec3d, x_after: wp.vec3d, v_after: wp.vec3d):
+    """Whether the collision stage changed a particle's end position or velocity by more than
+    rounding (1e-12 relative): its time-of-impact integration recomputes ``x0 + t v- + (h - t) v+``
+    even for a contact without impulse, which differs from the prediction in the last bits."""
+    tol = f64(1.0e-12)
+    moved = wp.length(x_after - x_pred) > tol * wp.length(x_pred)
+    return moved or wp.length(v_after - v_pred) > tol * (wp.length(v_pred) + wp.length(v_after))
+
+
+@wp.kernel
+def collided_particles(
+    x_pred: wp.array(dtype=wp.vec3d),
+    v_pred: wp.array(dtype=wp.vec3d),
+    x_after: wp.array(dtype=wp.vec3d),
+    v_after: wp.array(dtype=wp.vec3d),
+    inv_mass: wp.array(dtype=wp.float64),
+    fixed_before: wp.array(dtype=wp.int32),
+    fixed: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """``fixed_i = 1`` for the ``fixed_before`` particles and every free particle the collision
+    stage moved (:func:`changed`); the number of particles added goes to ``count[0]`` (a
+    decision: never taped)."""
+    i = wp.tid()
+    fixed[i] = fixed_before[i]
+    if inv_mass[i] == f64(0.0) or fixed_before[i] != 0:
+        return
+    if changed(x_pred[i], v_pred[i], x_after[i], v_after[i]):
+        fixed[i] = 1
+        wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel
+def constrained_velocity_change(
+    x0: wp.array(dtype=wp.vec3d),
+    v0: wp.array(dtype=wp.vec3d),
+    x_target: wp.array(dtype=wp.vec3d),
+    fixed: wp.array(dtype=wp.int32),
+    h: wp.float64,
+    g: wp.array(dtype=wp.vec3d),
+):
+    """``g_i = (x_target_i - x0_i) / h - v0_i`` for ``fixed`` particles (the velocity change that
+    ends the substep at ``x_target``), 0 for the others."""
+    i = wp.tid()
+    if fixed[i] != 0:
+        g[i] = (x_target[i] - x0[i]) / h - v0[i]
+    else:
+        g[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
+
+
+@wp.kernel
+def constrained_rhs(
+    b: wp.array(dtype=wp.vec3d),
+    a_g: wp.array(dtype=wp.vec3d),
+    fixed: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=wp.vec3d),
+):
+    """``out_i = b_i - (A g)_i`` for the unknown particles, 0 for the ``fixed`` ones (whose
+    velocity change ``g`` is prescribed)."""
+    i = wp.tid()
+    if fixed[i] != 0:
+        out[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
+    else:
+        out[i] = b[i] - a_g[i]
+
+
+@wp.kernel
+def sum_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    """``out = a + b`` (a fresh output: taped)."""
+    i = wp.tid()
+    out[i] = a[i] + b[i]
+
+
 # ------------------------------------------------------------------ conjugate gradients
 
 
@@ -172,17 +254,87 @@ def jacobi_kernel(r: wp.array(dtype=wp.vec3d), diag: wp.array(dtype=wp.vec3d), z
 
 
 @wp.kernel
-def cg_step_kernel(
+def spring_blocks(
+    x: wp.array(dtype=wp.vec3d),
+    spring_indices: wp.array(dtype=wp.int32),
+    rest_length: wp.array(dtype=wp.float64),
+    stiffness: wp.array(dtype=wp.float64),
+    damping: wp.array(dtype=wp.float64),
+    coef_x: wp.float64,
+    coef_v: wp.float64,
+    direction: wp.array(dtype=wp.vec3d),
+    along: wp.array(dtype=wp.float64),
+    across: wp.array(dtype=wp.float64),
+):
+    """Each spring's block of ``coef_x Kx + coef_v Kd`` at ``x``, once per solve (CG's products
+    then skip the square roots): ``along n n^T + across (I - n n^T)`` (zero for a spring of zero
+    length). Untaped: the adjoint replays :func:`spring_operator`."""
+    s = wp.tid()
+    n, stretch, ok = spring_frame(x, spring_indices[2 * s], spring_indices[2 * s + 1], rest_length[s])
+    direction[s] = n
+    if ok:
+        along[s] = coef_x * stiffness[s] + coef_v * damping[s]
+        across[s] = coef_x * stiffness[s] * stretch
+    else:
+        along[s] = f64(0.0)
+        across[s] = f64(0.0)
+
+
+@wp.kernel
+def spring_block_operator(
+    spring_indices: wp.array(dtype=wp.int32),
+    direction: wp.array(dtype=wp.vec3d),
+    along: wp.array(dtype=wp.float64),
+    across: wp.array(dtype=wp.float64),
+    inv_mass: wp.array(dtype=wp.float64),
+    fixed: wp.array(dtype=wp.int32),
+    p: wp.array(dtype=wp.vec3d),
+    y: wp.array(dtype=wp.vec3d),
+):
+    """:func:`spring_operator` from the blocks of :func:`spring_blocks` (the same product)."""
+    s = wp.tid()
+    i = spring_indices[2 * s]
+    j = spring_indices[2 * s + 1]
+    zero = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
+    free_i = inv_mass[i] > f64(0.0) and fixed[i] == 0
+    free_j = inv_mass[j] > f64(0.0) and fixed[j] == 0
+    pi = zero
+    pj = zero
+    if free_i:
+        pi = p[i]
+    if free_j:
+        pj = p[j]
+    n = direction[s]
+    dp = pi - pj
+    a = wp.dot(n, dp)
+    k = along[s] * a * n + across[s] * (dp - n * a)
+    if free_i:
+        wp.atomic_add(y, i, k)
+    if free_j:
+        wp.atomic_sub(y, j, k)
+
+
+@wp.kernel
+def cg_update_kernel(
     alpha: wp.float64,
     p: wp.array(dtype=wp.vec3d),
     ap: wp.array(dtype=wp.vec3d),
+    diag: wp.array(dtype=wp.vec3d),
     x: wp.array(dtype=wp.vec3d),
     r: wp.array(dtype=wp.vec3d),
+    z: wp.array(dtype=wp.vec3d),
+    dots: wp.array(dtype=wp.float64),
 ):
-    """``x += alpha p``, ``r -= alpha A p`` (in place: CG is never taped)."""
+    """One CG update in one pass: ``x += alpha p``, ``r -= alpha A p``, ``z = D^-1 r`` and
+    ``dots += (r.r, r.z)`` (the caller zeroes ``dots``; in place: CG is never taped)."""
     i = wp.tid()
     x[i] = x[i] + alpha * p[i]
-    r[i] = r[i] - alpha * ap[i]
+    ri = r[i] - alpha * ap[i]
+    r[i] = ri
+    zi = wp.cw_div(ri, diag[i])
+    z[i] = zi
+    wp.atomic_add(dots, 0, wp.dot(ri, ri))
+    wp.atomic_add(dots, 1, wp.dot(ri, zi))
 
 
 @wp.kernel
@@ -203,3 +355,46 @@ def add_kernel(a: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
 def negate_kernel(a: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
     out[i] = -a[i]
+
+
+@wp.kernel
+def strain_growth(
+    x_before: wp.array(dtype=wp.vec3d),
+    x_after: wp.array(dtype=wp.vec3d),
+    spring_indices: wp.array(dtype=wp.int32),
+    rest_length: wp.array(dtype=wp.float64),
+    growth: wp.array(dtype=wp.float64),
+):
+    """``growth[0] = max`` over springs of the increase of the strain ``|x_i - x_j| / rest - 1``
+    from ``x_before`` to ``x_after`` (the caller zeroes ``growth``; a decision: never taped)."""
+    s = wp.tid()
+    i = spring_indices[2 * s]
+    j = spring_indices[2 * s + 1]
+    rest = rest_length[s]
+    if rest <= f64(0.0):
+        return
+    change = (wp.length(x_after[i] - x_after[j]) - wp.length(x_before[i] - x_before[j])) / rest
+    if change > f64(0.0):
+        wp.atomic_max(growth, 0, change)
+
+
+@wp.kernel
+def held_velocity(
+    fixed: wp.array(dtype=wp.int32),
+    pred_q: wp.array(dtype=wp.vec3d),
+    pred_qd: wp.array(dtype=wp.vec3d),
+    q: wp.array(dtype=wp.vec3d),
+    qd: wp.array(dtype=wp.vec3d),
+    trial_qd: wp.array(dtype=wp.vec3d),
+    out_qd: wp.array(dtype=wp.vec3d),
+):
+    """End velocities after a constrained re-solve: a held (``fixed``) particle that the last
+    collision stage left as predicted ends with the velocity the trial's collision stage gave it
+    (the re-solve moved it along the mean velocity ``(x_target - x0) / h``, which is not its
+    velocity after the contact); every other particle keeps ``qd``."""
+    i = wp.tid()
+    v = qd[i]
+    if fixed[i] != 0:
+        if not changed(pred_q[i], pred_qd[i], q[i], qd[i]):
+            v = trial_qd[i]
+    out_qd[i] = v

@@ -83,6 +83,8 @@ def int_at_least(minimum: int, what: str = "an integer"):
 
 positive_int = int_at_least(1, "a positive integer")
 """``argparse`` type: an integer >= 1."""
+non_negative_int = int_at_least(0, "a non-negative integer")
+"""``argparse`` type: an integer >= 0."""
 
 
 def positive_float(text: str) -> float:
@@ -93,6 +95,17 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
     if not (value > 0.0 and value != float("inf")):
         raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """``argparse`` type: a finite float >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {text!r}") from None
+    if not (value >= 0.0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a non-negative finite number, got {text!r}")
     return value
 
 

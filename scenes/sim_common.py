@@ -28,7 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from scenes.registry import positive_float, positive_int
+from scenes.registry import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 from sim.integrator import INTEGRATORS
 from sim.rotation import quat_to_matrix
 
@@ -82,13 +87,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default %(default)s)")
     parser.add_argument("--cg-tolerance", type=positive_float, default=None,
                         help="implicit integrator: CG's relative residual (default 1e-8)")
+    parser.add_argument("--max-strain-step", type=non_negative_float, default=None,
+                        help="implicit integrator: halve a substep whose springs' strain grows by more than this "
+                             "(up to 4 times; 0 = never; default 0.1)")
+    parser.add_argument("--contact-passes", type=non_negative_int, default=None,
+                        help="implicit integrator: constrained re-solves per substep for the particles in contact "
+                             "(0 = collision response after the solve only; default 1)")
 
 
 def default_args(**overrides: Any) -> argparse.Namespace:
     """A namespace with the CLI defaults (for in-process runs), updated by ``overrides``."""
     ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
                             substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0,
-                            response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None)
+                            response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None,
+                            max_strain_step=None, contact_passes=None)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -182,15 +194,30 @@ class ContactGatherer:
         self.times: list[np.ndarray] = []
         self._elapsed = 0.0
 
+    def save_stats(self):
+        """The gathered contacts' and the handler's statistics (see
+        ``ImpulseCollisionHandler.save_stats``)."""
+        return self.handler.save_stats(), len(self.points), self._elapsed
+
+    def restore_stats(self, stats) -> None:
+        """Forgets what calls after :meth:`save_stats` gathered."""
+        inner, count, elapsed = stats
+        self.handler.restore_stats(inner)
+        del self.points[count:], self.normals[count:], self.times[count:]
+        self._elapsed = elapsed
+
     def __call__(self, state_in, state_pred, h: float):
         out = self.handler(state_in, state_pred, h)
+        self._gather(h)
+        return out
+
+    def _gather(self, h: float) -> None:
         if len(self.handler.last_contacts):
             self.points.append(np.asarray(self.handler.last_contacts, dtype=np.float64).reshape(-1, 3))
             self.normals.append(np.asarray(self.handler.last_normals, dtype=np.float64).reshape(-1, 3))
             # times of impact in seconds from the start of the step
             self.times.append(self._elapsed + np.asarray(self.handler.last_times, dtype=np.float64).reshape(-1))
         self._elapsed += h
-        return out
 
     def contacts(self) -> dict[str, np.ndarray]:
         if not self.points:
@@ -232,10 +259,16 @@ def simulate(
 
     model = build_model(build, args)
     kind = getattr(args, "integrator", "semi_implicit")
-    tolerance = getattr(args, "cg_tolerance", None)
-    if tolerance is not None and kind != "implicit":
-        raise ValueError("--cg-tolerance applies to --integrator implicit only")
-    integrator = make_integrator(model, kind, **({"tolerance": tolerance} if kind == "implicit" and tolerance else {}))
+    options = {}
+    for flag, key in (("cg_tolerance", "tolerance"), ("max_strain_step", "max_strain_step"),
+                      ("contact_passes", "contact_passes")):
+        value = getattr(args, flag, None)
+        if value is None:
+            continue
+        if kind != "implicit":
+            raise ValueError(f"--{flag.replace('_', '-')} applies to --integrator implicit only")
+        options[key] = (value or None) if key == "max_strain_step" else value
+    integrator = make_integrator(model, kind, **options)
     handler = ImpulseCollisionHandler(
         model, differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
     gatherer = ContactGatherer(handler)
@@ -324,6 +357,8 @@ def simulate(
         "substeps": substeps,
         "integrator": kind,
         "cg_iterations": int(getattr(integrator, "total_iterations", 0)),
+        "refined_substeps": int(getattr(integrator, "refinements", 0)),
+        "contact_constrained": int(getattr(integrator, "total_constrained", 0)),
         "device": str(model.device),
         "scale": float(getattr(args, "scale", 1.0)),
         "components": sorted(model.components),

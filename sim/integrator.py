@@ -270,17 +270,17 @@ INTEGRATORS = ("semi_implicit", "implicit")
 
 def check_integrator(kind: str, options: dict | None = None) -> None:
     """Raises ``ValueError`` for an unknown integrator ``kind`` or options it does not take
-    (the implicit one's ``tolerance`` and ``max_iterations``), before anything is built."""
+    (the implicit one's :data:`sim.implicit.OPTIONS`), before anything is built."""
     options = options or {}
     if kind == "semi_implicit":
         if options:
             raise ValueError(f"the semi_implicit integrator takes no options, got {sorted(options)}")
     elif kind == "implicit":
-        from sim.implicit import check_options
+        from sim.implicit import OPTIONS, check_options
 
-        unknown = sorted(set(options) - {"tolerance", "max_iterations"})
+        unknown = sorted(set(options) - set(OPTIONS))
         if unknown:
-            raise ValueError(f"the implicit integrator's options are tolerance and max_iterations, got {unknown}")
+            raise ValueError(f"the implicit integrator's options are {', '.join(OPTIONS)}, got {unknown}")
         check_options(**options)
     else:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {kind!r}")
@@ -289,7 +289,7 @@ def check_integrator(kind: str, options: dict | None = None) -> None:
 def make_integrator(model: Model, kind: str = "semi_implicit", requires_grad: bool | None = None,
                     **options) -> SemiImplicitIntegrator:
     """The integrator ``kind`` (one of :data:`INTEGRATORS`) for ``model``; ``options`` go to the
-    implicit one (``tolerance``, ``max_iterations``)."""
+    implicit one (:data:`sim.implicit.OPTIONS`)."""
     check_integrator(kind, options)
     if kind == "implicit":
         from sim.implicit import ImplicitIntegrator

@@ -55,6 +55,8 @@ class RolloutResult:
         event_coords: closest-point coordinates at each root's real part (E, 3, 3): barycentric
             (w1, w2, w3) of the triangle for vertex-face events, (s_a, s_b, 0) for edge-edge.
         stats: counts of the forward pass: ``contact_substeps`` (substeps with a mesh contact),
+            ``refined_substeps`` and ``contact_constrained`` (the implicit integrator's halved
+            substeps and particles held in its constrained re-solves),
             ``ccd_events`` (approaching CCD hits that became contacts, over all rounds and substeps),
             ``failsafe_substeps`` (impact zones formed), ``untaped_substeps`` (substeps whose
             impact-zone members' velocities carry no derivative), ``largest_system`` (most unknowns
@@ -110,6 +112,28 @@ def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkp
     return int(steps), dt_f, int(substeps), pqd, bqd, events
 
 
+class _CountingHandler:
+    """The collision handler, counting the substeps it changed in ``stats["contact_substeps"]``;
+    its statistics can be saved and restored around calls an integrator discards (see
+    ``ImpulseCollisionHandler.save_stats``)."""
+
+    def __init__(self, handler, stats: dict):
+        self.handler, self.stats = handler, stats
+
+    def __call__(self, state_in, state_pred, h):
+        out = self.handler(state_in, state_pred, h)
+        if out is not None:
+            self.stats["contact_substeps"] += 1
+        return out
+
+    def save_stats(self):
+        return self.handler.save_stats(), self.stats["contact_substeps"]
+
+    def restore_stats(self, saved) -> None:
+        self.handler.restore_stats(saved[0])
+        self.stats["contact_substeps"] = saved[1]
+
+
 class _Runner:
     """Steps the model and replays taped segments backwards (one instance per rollout call)."""
 
@@ -126,7 +150,7 @@ class _Runner:
         self.tape = None
         self.states: list[State] = []
         self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
-                      "unsettled_active_sets": 0, "ccd_events": 0}
+                      "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0}
 
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
         integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
@@ -138,13 +162,7 @@ class _Runner:
         return integ
 
     def _counting(self, handler):
-        def call(state_in, state_pred, h):
-            out = handler(state_in, state_pred, h)
-            if out is not None:
-                self.stats["contact_substeps"] += 1
-            return out
-
-        return call
+        return _CountingHandler(handler, self.stats)
 
     def _initial_state(self, particle_qd, body_qd, requires_grad: bool) -> State:
         s = self.model.state(requires_grad=requires_grad)
@@ -186,6 +204,9 @@ class _Runner:
             else:
                 spare = s
             s = s_next
+        if record is not None:  # the forward's (a backward recompute repeats the same work)
+            self.stats["refined_substeps"] += int(getattr(integ, "refinements", 0))
+            self.stats["contact_constrained"] += int(getattr(integ, "total_constrained", 0))
         return states if requires_grad else [s]
 
     def forward(self, particle_qd, body_qd, requires_grad: bool):
@@ -321,7 +342,9 @@ def rollout(
             ``orthogonal_clamping_real_side``; see :func:`collision.roots.orthogonal_clamped_jacobian`).
         integrator: "semi_implicit" (explicit springs) or "implicit" (backward Euler, CG solve
             differentiated implicitly: :class:`sim.implicit.ImplicitIntegrator`).
-        integrator_options: the implicit integrator's ``tolerance`` and ``max_iterations``.
+        integrator_options: the implicit integrator's options (:data:`sim.implicit.OPTIONS`:
+            ``tolerance``, ``max_iterations``, ``contact_passes``, ``max_strain_step``,
+            ``max_refinements``).
 
     Returns:
         :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd`` and
