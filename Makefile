@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/roots.py
 	$(PY) benchmarks/ccd.py --max-iterations 1000000 --generated --mesh
 	$(PY) benchmarks/sim.py
+	$(PY) benchmarks/implicit_accuracy.py
 	$(PY) benchmarks/rollout.py
 	$(PY) benchmarks/grazing.py
 	$(PY) benchmarks/orthogonal_clamp.py
