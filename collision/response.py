@@ -541,12 +541,18 @@ class ImpulseCollisionHandler:
     def save_stats(self) -> dict:
         """The statistics (life counters, last call's contacts), for :meth:`restore_stats` after
         calls whose result an integrator discards (a trial pass, a rejected substep)."""
-        return {c: getattr(self, c) for c in self._COUNTERS + self._LAST}
+        stats = {c: getattr(self, c) for c in self._COUNTERS + self._LAST}
+        stats["largest_system"] = self._replay.largest_system if self._replay is not None else 0
+        return stats
 
     def restore_stats(self, stats: dict) -> None:
         """Puts back the statistics of :meth:`save_stats`."""
         for c, v in stats.items():
-            setattr(self, c, v)
+            if c == "largest_system":
+                if self._replay is not None:
+                    self._replay.largest_system = v
+            else:
+                setattr(self, c, v)
 
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
         self.last_contacts = np.zeros((0, 3))
