@@ -86,6 +86,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import sys
 import time
 from typing import Any
 
@@ -99,17 +101,22 @@ if hasattr(wp, "LOG_WARNING"):
 SOLVERS = ("semi_implicit", "xpbd", "vbd")
 
 FPS = 60
-CLOTH_SIZE = 0.8
-DENSITY = 0.2
-CLOTH_HEIGHT = 0.7
-CLOTH_CENTRE_XY = (0.1, 0.0)
-SPHERE_RADIUS = 0.2
-SPHERE_CENTRE = (0.0, 0.0, 0.2)
-BOX_HALF = 0.1
-BOX_CENTRE = (0.35, 0.0, 0.1)
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+# the drop of scenes/cloth_drop.py (its geometry and material, not copies)
+from scenes.cloth_drop import (
+    BOX_CENTRE,
+    BOX_HALF,
+    CLOTH_CENTRE_XY,
+    CLOTH_HEIGHT,
+    CLOTH_SIZE,
+    DENSITY,
+    FRICTION,
+    RESTITUTION,
+    SPHERE_CENTRE,
+    SPHERE_RADIUS,
+)
+
 GRAVITY = -9.81
-FRICTION = 0.3
-RESTITUTION = 0.0
 PARTICLE_RADIUS = 5.0e-3
 """Particle radius = collision thickness [m]; also the pass-through depth."""
 REST_TOP_MIN_Z = 0.35

@@ -14,8 +14,9 @@ positive definite and conjugate gradients apply (:mod:`sim.implicit`).
 
 Every kernel writes a fresh output (``y`` zeroed by the caller before the atomic adds), so the
 operator can be replayed on a ``wp.Tape``: the solve's adjoint differentiates
-``<lambda, A(x) dv>`` w.r.t. ``x`` and the model's arrays by taping :func:`mass_operator` and
-:func:`spring_operator` (implicit differentiation; no CG iteration is ever taped).
+``<lambda, A(x) dv>`` w.r.t. ``x`` and the model's arrays by taping :func:`mass_operator`,
+:func:`spring_blocks` and :func:`spring_block_operator` (implicit differentiation; no CG
+iteration is ever taped).
 """
 
 import warp as wp
@@ -52,70 +53,25 @@ def spring_frame(x: wp.array(dtype=wp.vec3d), i: int, j: int, rest: wp.float64):
 
 
 @wp.kernel
-def spring_operator(
-    x: wp.array(dtype=wp.vec3d),
-    spring_indices: wp.array(dtype=wp.int32),
-    rest_length: wp.array(dtype=wp.float64),
-    stiffness: wp.array(dtype=wp.float64),
-    damping: wp.array(dtype=wp.float64),
-    inv_mass: wp.array(dtype=wp.float64),
-    fixed: wp.array(dtype=wp.int32),
-    coef_x: wp.float64,
-    coef_v: wp.float64,
-    p: wp.array(dtype=wp.vec3d),
-    y: wp.array(dtype=wp.vec3d),
-):
-    """Adds ``(coef_x Kx + coef_v Kd) (p_i - p_j)`` of spring ``tid`` to ``y_i`` and subtracts it
-    from ``y_j``; pinned and ``fixed`` particles neither receive nor contribute (their ``p``
-    counts as 0)."""
-    s = wp.tid()
-    i = spring_indices[2 * s]
-    j = spring_indices[2 * s + 1]
-    n, stretch, ok = spring_frame(x, i, j, rest_length[s])
-    if not ok:
-        return
-    zero = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
-    free_i = inv_mass[i] > f64(0.0) and fixed[i] == 0
-    free_j = inv_mass[j] > f64(0.0) and fixed[j] == 0
-    pi = zero
-    pj = zero
-    if free_i:
-        pi = p[i]
-    if free_j:
-        pj = p[j]
-    dp = pi - pj
-    along = wp.dot(n, dp)
-    k = (coef_x * stiffness[s]) * (n * along + stretch * (dp - n * along)) + (coef_v * damping[s] * along) * n
-    if free_i:
-        wp.atomic_add(y, i, k)
-    if free_j:
-        wp.atomic_sub(y, j, k)
-
-
-@wp.kernel
 def spring_diagonal(
-    x: wp.array(dtype=wp.vec3d),
     spring_indices: wp.array(dtype=wp.int32),
-    rest_length: wp.array(dtype=wp.float64),
-    stiffness: wp.array(dtype=wp.float64),
-    damping: wp.array(dtype=wp.float64),
+    direction: wp.array(dtype=wp.vec3d),
+    along: wp.array(dtype=wp.float64),
+    across: wp.array(dtype=wp.float64),
     inv_mass: wp.array(dtype=wp.float64),
     fixed: wp.array(dtype=wp.int32),
-    coef_x: wp.float64,
-    coef_v: wp.float64,
     diag: wp.array(dtype=wp.vec3d),
 ):
-    """Adds spring ``tid``'s share of the system's diagonal (per coordinate) to ``diag`` (the
-    Jacobi preconditioner; the caller starts it at the masses)."""
+    """Adds spring ``tid``'s share of the system's diagonal (per coordinate; its block of
+    :func:`spring_blocks`) to ``diag`` (the Jacobi preconditioner; the caller starts it at the
+    masses)."""
     s = wp.tid()
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
-    n, stretch, ok = spring_frame(x, i, j, rest_length[s])
-    if not ok:
-        return
+    n = direction[s]
     nn = wp.cw_mul(n, n)
     one = wp.vec3d(f64(1.0), f64(1.0), f64(1.0))
-    k = (coef_x * stiffness[s]) * (nn + stretch * (one - nn)) + (coef_v * damping[s]) * nn
+    k = along[s] * nn + across[s] * (one - nn)
     if inv_mass[i] > f64(0.0) and fixed[i] == 0:
         wp.atomic_add(diag, i, k)
     if inv_mass[j] > f64(0.0) and fixed[j] == 0:
@@ -266,9 +222,9 @@ def spring_blocks(
     along: wp.array(dtype=wp.float64),
     across: wp.array(dtype=wp.float64),
 ):
-    """Each spring's block of ``coef_x Kx + coef_v Kd`` at ``x``, once per solve (CG's products
-    then skip the square roots): ``along n n^T + across (I - n n^T)`` (zero for a spring of zero
-    length). Untaped: the adjoint replays :func:`spring_operator`."""
+    """Each spring's block of ``coef_x Kx + coef_v Kd`` at ``x``: ``along n n^T + across (I - n
+    n^T)`` (zero for a spring of zero length). Formed once per solve for CG's products; taped
+    (into fresh arrays) where the operator's dependence on ``x`` and the model is differentiated."""
     s = wp.tid()
     n, stretch, ok = spring_frame(x, spring_indices[2 * s], spring_indices[2 * s + 1], rest_length[s])
     direction[s] = n
@@ -291,7 +247,9 @@ def spring_block_operator(
     p: wp.array(dtype=wp.vec3d),
     y: wp.array(dtype=wp.vec3d),
 ):
-    """:func:`spring_operator` from the blocks of :func:`spring_blocks` (the same product)."""
+    """Adds the blocks' product ``B_s (p_i - p_j)`` of spring ``tid`` (:func:`spring_blocks`) to
+    ``y_i`` and subtracts it from ``y_j``; pinned and ``fixed`` particles neither receive nor
+    contribute (their ``p`` counts as 0)."""
     s = wp.tid()
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
@@ -394,7 +352,6 @@ def held_velocity(
     velocity after the contact); every other particle keeps ``qd``."""
     i = wp.tid()
     v = qd[i]
-    if fixed[i] != 0:
-        if not changed(pred_q[i], pred_qd[i], q[i], qd[i]):
-            v = trial_qd[i]
+    if fixed[i] != 0 and not changed(pred_q[i], pred_qd[i], q[i], qd[i]):
+        v = trial_qd[i]
     out_qd[i] = v

@@ -32,6 +32,9 @@ SPHERE_CENTRE = (0.0, 0.0, 0.2)
 BOX_HALF = 0.1
 BOX_CENTRE = (0.35, 0.0, 0.1)
 THICKNESS = 1e-3
+DENSITY = 0.2
+FRICTION = 0.3
+RESTITUTION = 0.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,12 +53,12 @@ def build(builder: Any, args: argparse.Namespace) -> None:
     corner = (CLOTH_CENTRE_XY[0] - CLOTH_SIZE / 2, CLOTH_CENTRE_XY[1] - CLOTH_SIZE / 2, CLOTH_HEIGHT)
     builder.add_cloth_grid(
         corner, None, cells, cells, cell, cell,
-        density=0.2, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
+        density=DENSITY, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
     )
     builder.add_static_mesh(*icosphere(SPHERE_RADIUS, 2), pos=SPHERE_CENTRE)
     builder.add_static_mesh(*box_mesh(BOX_HALF), pos=BOX_CENTRE)
     builder.add_ground_plane()
-    builder.set_contact(restitution=0.0, friction=0.3, thickness=THICKNESS)
+    builder.set_contact(restitution=RESTITUTION, friction=FRICTION, thickness=THICKNESS)
 
 
 def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:

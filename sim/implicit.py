@@ -42,11 +42,10 @@ from kernels.implicit import (
     spring_block_operator,
     spring_blocks,
     spring_diagonal,
-    spring_operator,
     strain_growth,
     sum_kernel,
 )
-from sim.integrator import SemiImplicitIntegrator, _requires_grad
+from sim.integrator import SemiImplicitIntegrator, _requires_grad, copy_state
 from sim.model import Model, State
 
 DEFAULT_TOLERANCE = 1.0e-8
@@ -175,10 +174,23 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             wp.launch(mass_operator, dim=m.particle_count, inputs=[p, m.particle_inv_mass, fixed], outputs=[y],
                       device=d)
         if self._spring_indices is not None:
-            wp.launch(spring_operator, dim=m.spring_count,
-                      inputs=[x, self._spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
-                              m.particle_inv_mass, fixed, wp.float64(cx), wp.float64(cv), p],
-                      outputs=[y], device=d)
+            # fresh blocks: a taped product is differentiated through them (x, stiffness, damping)
+            grad = active_tape() is not None
+            blocks = (wp.zeros(m.spring_count, dtype=wp.vec3d, device=d, requires_grad=grad),
+                      wp.zeros(m.spring_count, dtype=wp.float64, device=d, requires_grad=grad),
+                      wp.zeros(m.spring_count, dtype=wp.float64, device=d, requires_grad=grad))
+            self._blocks(x, cx, cv, blocks)
+            wp.launch(spring_block_operator, dim=m.spring_count,
+                      inputs=[self._spring_indices, *blocks, m.particle_inv_mass, fixed, p], outputs=[y], device=d)
+
+    def _blocks(self, x, coef_x: float, coef_v: float, out) -> None:
+        """The springs' blocks of ``coef_x Kx + coef_v Kd`` at ``x`` into ``out`` (direction,
+        along, across)."""
+        m = self.model
+        wp.launch(spring_blocks, dim=m.spring_count,
+                  inputs=[x, self._spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
+                          wp.float64(coef_x), wp.float64(coef_v)],
+                  outputs=list(out), device=self.device)
 
     def _dot(self, a, b) -> float:
         self._dot_out.zero_()
@@ -195,17 +207,13 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         with paused_tape():  # CG's in-place updates are not replayable; the adjoint is recorded instead
             wp.launch(mass_operator, dim=n, inputs=[self._ones, m.particle_inv_mass, fixed], outputs=[self._diag],
                       device=d)
-            if self._spring_indices is not None:
-                wp.launch(spring_diagonal, dim=m.spring_count,
-                          inputs=[x, self._spring_indices, m.spring_rest_length, m.spring_stiffness,
-                                  m.spring_damping, m.particle_inv_mass, fixed, wp.float64(h * h), wp.float64(h)],
-                          outputs=[self._diag], device=d)
             springs = self._spring_indices is not None
             if springs:
-                wp.launch(spring_blocks, dim=m.spring_count,
-                          inputs=[x, self._spring_indices, m.spring_rest_length, m.spring_stiffness,
-                                  m.spring_damping, wp.float64(h * h), wp.float64(h)],
-                          outputs=[self._direction, self._along, self._across], device=d)
+                self._blocks(x, h * h, h, (self._direction, self._along, self._across))
+                wp.launch(spring_diagonal, dim=m.spring_count,
+                          inputs=[self._spring_indices, self._direction, self._along, self._across,
+                                  m.particle_inv_mass, fixed],
+                          outputs=[self._diag], device=d)
             out.zero_()
             wp.copy(self._r, b)
             b_norm = np.sqrt(self._dot(b, b))
@@ -276,10 +284,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 self._substep(s, s_next, hk, True)
                 s = s_next
             return state_out
-        for name in ("particle_q", "particle_qd", "body_q", "body_qd"):
-            src = getattr(s, name)
-            if src.shape[0] > 0:
-                wp.copy(getattr(state_out, name), src)
+        copy_state(s, state_out)
         return state_out
 
     def _refined(self, s: State, h: float, depth: int, schedule: list) -> State:
@@ -345,10 +350,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 added = int(self._count.numpy()[0])
                 if added == 0:
                     # nothing new in contact: this trial is the substep (its collision stage counts)
-                    for name in ("particle_q", "particle_qd", "body_q", "body_qd"):
-                        src, dst = getattr(trial, name), getattr(s_out, name)
-                        if src.shape[0] > 0:
-                            wp.copy(dst, src)
+                    copy_state(trial, s_out)
                     return
                 _restore_stats(handler, stats)  # the trial's collision stage is redone
                 self.constrained += added
@@ -361,10 +363,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             wp.launch(held_velocity, dim=n,
                       inputs=[fixed, pred.particle_q, pred.particle_qd, final.particle_q, final.particle_qd, target_v],
                       outputs=[s_out.particle_qd], device=d)
-            for name in ("particle_q", "body_q", "body_qd"):
-                src = getattr(final, name)
-                if src.shape[0] > 0:
-                    wp.copy(getattr(s_out, name), src)
+            copy_state(final, s_out, ("particle_q", "body_q", "body_qd"))
         finally:
             self._fixed = self._x_target = None
 

@@ -45,6 +45,15 @@ from sim.model import Model, State
 CollisionHandler = Callable[[State, State, float], "State | None"]
 
 
+def copy_state(src: State, dst: State, names=("particle_q", "particle_qd", "body_q", "body_qd")) -> None:
+    """Copies the arrays ``names`` of ``src`` into ``dst`` (taped copies; shared or empty arrays
+    skipped)."""
+    for name in names:
+        a, b = getattr(src, name), getattr(dst, name)
+        if a is not b and a.shape[0] > 0:
+            wp.copy(b, a)
+
+
 def _requires_grad(state: State) -> bool:
     return any(a is not None and a.requires_grad for a in (state.particle_q, state.particle_qd, state.body_q, state.body_qd))
 
@@ -199,10 +208,7 @@ class SemiImplicitIntegrator:
             result = handler(s_in, cur, h)
             if result is not None:
                 cur = result
-        for name in ("particle_q", "particle_qd", "body_q", "body_qd"):
-            src, dst = getattr(cur, name), getattr(s_out, name)
-            if src is not dst and src.shape[0] > 0:
-                wp.copy(dst, src)
+        copy_state(cur, s_out)
 
     def _spring_forces(self, s_in: State, requires_grad: bool):
         """The springs' forces at the substep's start (a fresh or zeroed scratch array)."""
