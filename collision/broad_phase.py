@@ -342,6 +342,19 @@ class BroadPhase:
             ``[edge_a, edge_b]`` with ``edge_a < edge_b`` (indices into ``faces`` / ``edges``),
             both sorted lexicographically.
         """
+        vf_buf, n_vf, ee_buf, n_ee = self.query_device(x0, x1, inflation, rebuild=rebuild)
+        return _sorted_pairs(vf_buf, n_vf), _sorted_pairs(ee_buf, n_ee)
+
+    def query_device(self, x0, x1, inflation: float = 0.0, *, rebuild: bool | None = None):
+        """:meth:`query` with the pairs left on the device, unsorted (for a narrow phase that reads
+        them there: no per-pair array crosses to the host).
+
+        Returns:
+            ``(vf, n_vf, ee, n_ee)``: Warp ``vec2i`` buffers whose first ``n_vf`` / ``n_ee`` rows
+            are the pairs of :meth:`query` (in the order the kernels emitted them; deterministic
+            on the CPU). The buffers are reused by the next query. The positions stay in
+            :attr:`positions` until then.
+        """
         a = _positions(x0, "x0")
         b = _positions(x1, "x1")
         if a.shape != b.shape:
@@ -355,10 +368,9 @@ class BroadPhase:
         if not np.isfinite(infl) or infl < 0.0:
             raise ValueError(f"inflation: expected a non-negative finite number, got {inflation!r}")
 
-        empty = np.zeros((0, 2), dtype=np.int64)
         nv, nf, ne = self.num_vertices, len(self.faces), len(self.edges)
         if nv == 0 or not self._any_allowed:
-            return empty, empty.copy()
+            return self._vf_buf, 0, self._ee_buf, 0
         if rebuild is None:
             rebuild = self._queries_since_build >= self.rebuild_every
         if rebuild or self._face_bvhs is None or self._edge_bvhs is None:
@@ -370,7 +382,7 @@ class BroadPhase:
         xa.assign(a)
         xb.assign(b)
 
-        vf = empty
+        n_vf = 0
         if self._vf_plans:
             self._launch("v_box", _k.vertex_boxes_kernel, nv, [xa, xb, infl, self._v_lo, self._v_hi])
             self._launch("f_box", _k.face_boxes_kernel, nf, [xa, xb, self._faces, self._f_lo, self._f_hi])
@@ -380,10 +392,10 @@ class BroadPhase:
                 (("vf", i), _k.vertex_face_pairs_kernel, qn, [bvh.id, h, ls, qs, *shared])
                 for i, (bvh, (h, ls, _le, qs, qn)) in enumerate(zip(self._face_bvhs, self._vf_plans))
             ]
-            vf, self._vf_buf = self._pairs(launches, self._vf_buf)
+            self._vf_buf, n_vf = self._pairs(launches, self._vf_buf)
         elif self._face_bvhs is None:
             self._face_bvhs = []
-        ee = empty.copy()
+        n_ee = 0
         if self._ee_plans:
             outputs = [self._e_lo, self._e_hi, self._eq_lo, self._eq_hi]
             self._launch("e_box", _k.edge_boxes_kernel, ne, [xa, xb, self._edges, infl, *outputs])
@@ -393,10 +405,15 @@ class BroadPhase:
                 (("ee", i), _k.edge_edge_pairs_kernel, qn, [bvh.id, h, ls, qs, *shared])
                 for i, (bvh, (h, ls, _le, qs, qn)) in enumerate(zip(self._edge_bvhs, self._ee_plans))
             ]
-            ee, self._ee_buf = self._pairs(launches, self._ee_buf)
+            self._ee_buf, n_ee = self._pairs(launches, self._ee_buf)
         elif self._edge_bvhs is None:
             self._edge_bvhs = []
-        return vf, ee
+        return self._vf_buf, n_vf, self._ee_buf, n_ee
+
+    @property
+    def positions(self) -> tuple[wp.array, wp.array]:
+        """The float64 positions (``x0``, ``x1``) of the last query, on the device."""
+        return self._xa, self._xb
 
     @staticmethod
     def _fit(bvhs: list | None, plans: list, lo: wp.array, hi: wp.array, rebuild: bool) -> list:
@@ -427,11 +444,11 @@ class BroadPhase:
                     last[i] = new
         cmd.launch()
 
-    def _pairs(self, launches: list, buf: wp.array) -> tuple[np.ndarray, wp.array]:
+    def _pairs(self, launches: list, buf: wp.array) -> tuple[wp.array, int]:
         """The launches ``(key, kernel, dim, inputs)`` into ``buf`` through one shared counter; on
         overflow grow it to the exact count and launch them all again.
 
-        Returns the pairs (int64, sorted lexicographically) and the buffer to keep.
+        Returns the buffer to keep and the number of pairs in it.
         """
         dev = self.device
         tail = [self._self_ok, self._static, self._counter]
@@ -445,10 +462,16 @@ class BroadPhase:
             if total <= buf.shape[0]:
                 break
             buf = wp.empty(total + total // 4, dtype=wp.vec2i, device=dev)
-        out = buf.numpy()[:total].astype(np.int64)
-        # grouped by query primitive and tree on the CPU, any order on a GPU: sort for a deterministic result
-        order = np.lexsort((out[:, 1], out[:, 0]))
-        return out[order], buf
+        return buf, total
+
+
+def _sorted_pairs(buf: wp.array, count: int) -> np.ndarray:
+    """The first ``count`` rows of a pair buffer, int64, sorted lexicographically (grouped by query
+    primitive and tree on the CPU, any order on a GPU: sorted for a deterministic result)."""
+    if count == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    out = buf.numpy()[:count].astype(np.int64)
+    return out[np.lexsort((out[:, 1], out[:, 0]))]
 
 
 def candidate_pairs(

@@ -22,7 +22,7 @@ import warp as wp
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 
-__all__ = ["MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
+__all__ = ["CandidateNarrowPhase", "MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
 
 _DEVICE = "cpu"
 _VF_NAMES = ("p_t0", "t0_t0", "t1_t0", "t2_t0", "p_t1", "t0_t1", "t1_t1", "t2_t1")
@@ -92,6 +92,111 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0):
         )
         wp.synchronize_device(_DEVICE)
     return hit.astype(bool), toi, source
+
+
+class CandidateNarrowPhase:
+    """The narrow phase (and the proximity test) of a mesh's broad-phase candidate pairs, run
+    where the broad phase left them (:meth:`collision.broad_phase.BroadPhase.query_device`): one
+    kernel per pair kind reads the pairs and the positions on the device and appends only the
+    hits, so the per-pair arrays never cross to the host. The results equal
+    :func:`narrow_phase` on the same pairs, in the sorted order of
+    :meth:`~collision.broad_phase.BroadPhase.query`.
+
+    Args:
+        broad_phase: the :class:`collision.broad_phase.BroadPhase` of the mesh (its ``faces``
+            and ``edges`` number the pairs; its device is used).
+    """
+
+    def __init__(self, broad_phase) -> None:
+        init_warp()
+        self.broad_phase = broad_phase
+        dev = self.device = broad_phase.device
+        self._faces = wp.array(np.ascontiguousarray(broad_phase.faces, dtype=np.int32).reshape(-1, 3),
+                               dtype=wp.vec3i, device=dev)
+        self._edges = wp.array(np.ascontiguousarray(broad_phase.edges, dtype=np.int32).reshape(-1, 2),
+                               dtype=wp.vec2i, device=dev)
+        self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._pairs = wp.empty(0, dtype=wp.vec2i, device=dev)
+        self._time = wp.empty(0, dtype=wp.float64, device=dev)
+        self._source = wp.empty(0, dtype=wp.int32, device=dev)
+        self._offset = wp.empty(0, dtype=wp.vec3d, device=dev)
+        self._weights = wp.empty(0, dtype=wp.vec4d, device=dev)
+
+    def _reserve(self, n: int) -> None:
+        if self._pairs.shape[0] < n:
+            n = max(n, 2 * self._pairs.shape[0], 64)
+            dev = self.device
+            self._pairs = wp.empty(n, dtype=wp.vec2i, device=dev)
+            self._time = wp.empty(n, dtype=wp.float64, device=dev)
+            self._source = wp.empty(n, dtype=wp.int32, device=dev)
+            self._offset = wp.empty(n, dtype=wp.vec3d, device=dev)
+            self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
+
+    def _collect(self, buffers, launch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Runs ``launch(kind, pairs, count)`` for both kinds (each appends to the output buffers
+        through the counter) and returns (kind (K,), pair (K, 2) int64, row order (K,)): the hits
+        sorted by kind, then lexicographically by pair (the order of ``BroadPhase.query``)."""
+        vf, n_vf, ee, n_ee = buffers
+        self._reserve(n_vf + n_ee)
+        self._counter.zero_()
+        counts = []
+        for kind, pairs, n in ((0, vf, n_vf), (1, ee, n_ee)):
+            before = int(self._counter.numpy()[0]) if kind else 0
+            if n:
+                launch(kind, pairs, n)
+            counts.append(int(self._counter.numpy()[0]) - before)
+        total = counts[0] + counts[1]
+        if total == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
+        kind = np.repeat(np.array([0, 1], dtype=np.int64), counts)
+        pair = self._pairs.numpy()[:total].astype(np.int64)
+        order = np.lexsort((pair[:, 1], pair[:, 0], kind))
+        return kind[order], pair[order], order
+
+    def ccd(self, x0, x1, thickness: float = 0.0):
+        """Hits of the vertices moving linearly from ``x0`` to ``x1`` ((V, 3) float64).
+
+        Returns:
+            (kind (K,) int64: 0 vertex-face, 1 edge-edge; pair (K, 2) int64 ``[vertex, face]`` /
+            ``[edge_a, edge_b]``; time of impact (K,) as a fraction of the step; source (K,)
+            int64, as :func:`narrow_phase`'s), hits only.
+        """
+        t = float(thickness)
+        if not np.isfinite(t) or t < 0.0:
+            raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
+        buffers = self.broad_phase.query_device(x0, x1, 0.0)
+        xa, xb = self.broad_phase.positions
+
+        def launch(kind, pairs, n):
+            wp.launch(_k.pair_ccd_kernel, dim=n, device=self.device,
+                      inputs=[kind, pairs, xa, xb, self._faces, self._edges, wp.float64(t)],
+                      outputs=[self._counter, self._pairs, self._time, self._source])
+
+        kind, pair, order = self._collect(buffers, launch)
+        n = len(kind)
+        return kind, pair, self._time.numpy()[:n][order], self._source.numpy()[:n][order].astype(np.int64)
+
+    def near(self, x, max_distance: float):
+        """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
+
+        Returns:
+            (kind (K,), pair (K, 2), offset (K, 3): closest point of the first primitive minus
+            the second's, weights (K, 4): the closest points' signed weights, side A positive,
+            side B negative (:func:`kernels.contact.pair_weights`)).
+        """
+        from kernels.contact import pair_proximity_kernel
+
+        buffers = self.broad_phase.query_device(x, x, float(max_distance))
+        xa, _ = self.broad_phase.positions
+
+        def launch(kind, pairs, n):
+            wp.launch(pair_proximity_kernel, dim=n, device=self.device,
+                      inputs=[kind, pairs, xa, self._faces, self._edges, wp.float64(max_distance)],
+                      outputs=[self._counter, self._pairs, self._offset, self._weights])
+
+        kind, pair, order = self._collect(buffers, launch)
+        n = len(kind)
+        return kind, pair, self._offset.numpy()[:n][order], self._weights.numpy()[:n][order]
 
 
 def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0):

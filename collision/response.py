@@ -49,11 +49,15 @@ import itertools
 import numpy as np
 import warp as wp
 
-from collision.broad_phase import BroadPhase, mesh_edges
-from collision.ccd import narrow_phase
+from collision.broad_phase import BroadPhase
+from collision.ccd import CandidateNarrowPhase
+from collision.mesh import VERTEX_BODY as _BODY
+from collision.mesh import VERTEX_PARTICLE as _PARTICLE
+from collision.mesh import VERTEX_STATIC as _STATIC
+from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import contact_offsets_kernel, solve_contacts_kernel
+from kernels.contact import pair_weights_kernel, solve_contacts_kernel
 from sim.model import Model, State
 from sim.rotation import quat_to_matrix, quat_turn
 
@@ -89,9 +93,6 @@ its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
-
-_PARTICLE, _BODY, _STATIC = 0, 1, 2
-
 
 class _Contacts:
     """The contact set of one substep (grows over the CCD rounds; keyed by primitive pair)."""
@@ -201,53 +202,37 @@ class ImpulseCollisionHandler:
         self.differentiable = bool(differentiable)
         self.max_derivative = float(max_derivative)
         m = model
-        comps = model.components
-        faces, groups, self_collision, static = [], [], [], []
-        vtype, vowner = [], []
-        self.n_particles = m.particle_count if "cloth" in comps else 0
-        offset = 0
+        mesh = self.mesh = CollisionMesh.from_model(model)
+        self.n_particles = mesh.particle_count
+        self.shape_offset = mesh.shape_offset
+        self.n_shape = mesh.shape_count
+        self.static_offset = mesh.static_offset
+        self.shape_vertices = mesh.shape_local
+        self.shape_body = mesh.shape_body
+        self.static_vertices = mesh.static_vertices
+        self.n_vertices = mesh.vertex_count
+        self.faces, self.edges = mesh.faces, mesh.edges
+        # broad-phase groups: the particles (self-collision only with "self_collision"), each
+        # body (never with itself), the static meshes (never with each other)
+        groups, self_collision, static = [], [], []
         if self.n_particles:
-            faces.append(m.tri_indices.numpy().reshape(-1, 3))
             groups.append(np.zeros(self.n_particles, dtype=np.int64))
-            self_collision.append("self_collision" in comps)
+            self_collision.append("self_collision" in model.components)
             static.append(False)
-            vtype.append(np.full(self.n_particles, _PARTICLE))
-            vowner.append(np.arange(self.n_particles))
-            offset = self.n_particles
-        self.shape_offset = offset
-        self.n_shape = 0
-        if m.body_count and m.shape_vertices is not None and m.shape_vertices.shape[0]:
-            self.shape_vertices = m.shape_vertices.numpy()
-            self.shape_body = m.shape_vertex_body.numpy().astype(np.int64)
-            self.n_shape = len(self.shape_vertices)
-            faces.append(m.shape_faces.numpy().reshape(-1, 3) + offset)
+        if self.n_shape:
             groups.append(len(self_collision) + self.shape_body)
             self_collision.extend([False] * m.body_count)
             static.extend([False] * m.body_count)
-            vtype.append(np.full(self.n_shape, _BODY))
-            vowner.append(self.shape_body)
-            offset += self.n_shape
-        self.static_offset = offset
-        self.static_vertices = np.zeros((0, 3))
-        if m.static_vertices is not None and m.static_vertices.shape[0]:
-            self.static_vertices = m.static_vertices.numpy()
-            n_static = len(self.static_vertices)
-            faces.append(m.static_faces.numpy().reshape(-1, 3) + offset)
-            groups.append(np.full(n_static, len(self_collision), dtype=np.int64))
+        if len(self.static_vertices):
+            groups.append(np.full(len(self.static_vertices), len(self_collision), dtype=np.int64))
             self_collision.append(False)
             static.append(True)
-            vtype.append(np.full(n_static, _STATIC))
-            vowner.append(np.zeros(n_static, dtype=np.int64))
-            offset += n_static
-        self.n_vertices = offset
-        self.faces = np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), dtype=np.int64)
-        self.edges = mesh_edges(self.faces) if len(self.faces) else np.zeros((0, 2), dtype=np.int64)
         # one dummy static vertex (index n_vertices, at the origin): the second side of
         # vertex-plane contacts
-        self.vertex_type = np.append(np.concatenate(vtype) if vtype else np.zeros(0), _STATIC).astype(np.int64)
-        self.vertex_owner = np.append(np.concatenate(vowner) if vowner else np.zeros(0), 0).astype(np.int64)
-        self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device="cpu")
-        self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device="cpu")
+        self.vertex_type = np.append(mesh.vertex_type, _STATIC).astype(np.int64)
+        self.vertex_owner = np.append(mesh.vertex_owner, 0).astype(np.int64)
+        self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=model.device)
+        self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=model.device)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
         self.last_sweeps = 0
         self.broad_phase = None
@@ -255,8 +240,9 @@ class ImpulseCollisionHandler:
             self.broad_phase = BroadPhase(
                 self.faces, self.edges, num_vertices=self.n_vertices,
                 groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
-                static=np.array(static, dtype=bool), device="cpu",
+                static=np.array(static, dtype=bool), device=model.device,
             )
+            self._narrow = CandidateNarrowPhase(self.broad_phase)
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
         # vertices an impulse can move: rigid ones and unpinned particles
         inv_mass = np.zeros(len(self.vertex_type))
@@ -288,13 +274,8 @@ class ImpulseCollisionHandler:
         self.unsettled_active_sets = 0
         self._replay = None
         if self.differentiable:
-            local = np.zeros((self.n_vertices, 3))
-            if self.n_shape:
-                local[self.shape_offset:self.shape_offset + self.n_shape] = self.shape_vertices
-            if len(self.static_vertices):
-                local[self.static_offset:] = self.static_vertices
             self._replay = ContactReplay(
-                self.vertex_type[:-1], self.vertex_owner[:-1], local,
+                mesh.vertex_type, mesh.vertex_owner, mesh.local,
                 m.particle_inv_mass if self.n_particles else None,
                 m.body_inv_mass if self.n_bodies else None,
                 m.body_inv_inertia if self.n_bodies else None,
@@ -305,18 +286,10 @@ class ImpulseCollisionHandler:
     # geometry
 
     def _vertices(self, particle_q, body_q):
-        """World positions of all collidable vertices for particle and body arrays (numpy)."""
-        parts = []
-        if self.n_particles:
-            parts.append(particle_q[: self.n_particles])
-        if self.n_shape:
-            pos, quat = body_q[:, :3], body_q[:, 3:7]
-            rot = quat_to_matrix(quat)[self.shape_body]
-            parts.append(pos[self.shape_body] + np.einsum("nij,nj->ni", rot, self.shape_vertices))
-        if len(self.static_vertices):
-            parts.append(self.static_vertices)
-        parts.append(np.zeros((1, 3)))  # the dummy vertex
-        return np.concatenate(parts)
+        """World positions of all collidable vertices for particle and body arrays (numpy), and
+        the dummy vertex at the origin."""
+        x = self.mesh.positions(particle_q, body_q if self.n_bodies else np.zeros((self.model.body_count, 7)))
+        return np.concatenate([x, np.zeros((1, 3))])
 
     def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
@@ -329,30 +302,19 @@ class ImpulseCollisionHandler:
         idx[ee, 2:] = self.edges[pair[ee, 1]]
         return idx
 
-    def _offsets(self, x: np.ndarray, idx: np.ndarray, kind: np.ndarray) -> np.ndarray:
-        """Exact closest-point offsets (side A minus side B) of the pairs at positions ``x``."""
-        out = wp.empty(len(idx), dtype=wp.vec3d, device="cpu")
-        wp.launch(
-            contact_offsets_kernel, dim=len(idx),
-            inputs=[wp.array(x, dtype=wp.vec3d, device="cpu"), wp.array(idx.astype(np.int32), dtype=wp.vec4i, device="cpu"),
-                    wp.array(kind.astype(np.int32), dtype=wp.int32, device="cpu")],
-            outputs=[out], device="cpu",
-        )
-        return out.numpy()
-
-    @staticmethod
-    def _weights(y: np.ndarray, edge_edge: np.ndarray) -> np.ndarray:
-        """Signed weights (C, 4) of the closest points of the pairs at positions ``y`` (C, 4, 3)."""
-        w = np.zeros((len(y), 4))
-        vf = ~edge_edge
-        if vf.any():
-            bary = _barycentric(y[vf, 0], y[vf, 1], y[vf, 2], y[vf, 3])
-            w[vf] = np.column_stack([np.ones(int(vf.sum())), -bary])
-        if edge_edge.any():
-            a0, a1, b0, b1 = (y[edge_edge, k] for k in range(4))
-            s, u = _segment_params(a0, a1, b0, b1)
-            w[edge_edge] = np.column_stack([1 - s, s, -(1 - u), -u])
-        return w
+    def _weights(self, y: np.ndarray, kind: np.ndarray) -> np.ndarray:
+        """Signed weights (C, 4) of the exact closest points of the pairs (``kind`` (C,): 0
+        vertex-face, 1 edge-edge, 2 vertex-plane) at positions ``y`` (C, 4, 3): side A positive
+        (sum 1), side B negative (sum -1); :func:`kernels.contact.pair_weights`, the definition
+        the replay and the narrow phase use."""
+        dev = self.model.device
+        out = wp.empty(len(y), dtype=wp.vec4d, device=dev)
+        if len(y):
+            wp.launch(pair_weights_kernel, dim=len(y), device=dev,
+                      inputs=[wp.array(kind.astype(np.int32), dtype=wp.int32, device=dev),
+                              wp.array(np.ascontiguousarray(y).reshape(-1, 3), dtype=wp.vec3d, device=dev)],
+                      outputs=[out])
+        return out.numpy().reshape(-1, 4)
 
     def _plane_proximity(self, x0: np.ndarray, delta: float):
         """Rigid vertices closer than ``delta`` to (or behind) a plane at the start: (kind 2,
@@ -383,20 +345,13 @@ class ImpulseCollisionHandler:
         """
         n = self.n_vertices
         kinds, pairs, idxs, tois, sources = [], [], [], [], []
-        vf, ee = self.broad_phase.query(x0[:n], x1[:n], 0.0)
-        if len(vf) + len(ee):
-            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
-            pair = np.concatenate([vf, ee])
-            idx = self._pair_vertices(kind, pair)
-            queries = np.ascontiguousarray(np.concatenate([x0[idx], x1[idx]], axis=1))
-            hit_vf, toi_vf, src_vf = narrow_phase(0, queries[kind == 0], 0.0)
-            hit_ee, toi_ee, src_ee = narrow_phase(1, queries[kind == 1], 0.0)
-            hit = np.concatenate([hit_vf, hit_ee])
-            kinds.append(kind[hit])
-            pairs.append(pair[hit])
-            idxs.append(idx[hit])
-            tois.append(np.concatenate([toi_vf, toi_ee])[hit])
-            sources.append(np.concatenate([src_vf, src_ee])[hit].astype(np.int64))
+        kind, pair, toi, source = self._narrow.ccd(x0[:n], x1[:n], 0.0)
+        if len(kind):
+            kinds.append(kind)
+            pairs.append(pair)
+            idxs.append(self._pair_vertices(kind, pair))
+            tois.append(toi)
+            sources.append(source)
         if self.n_shape and len(self.planes):
             verts = np.arange(self.shape_offset, self.shape_offset + self.n_shape)
             d0 = x0[verts] @ self.planes[:, :3].T - self.planes[:, 3]
@@ -468,7 +423,7 @@ class ImpulseCollisionHandler:
         impulses of ``cs``."""
         if len(cs) == 0:
             return
-        dev = "cpu"
+        dev = self.model.device
 
         def arr(a, dtype, fill_shape):
             a = np.ascontiguousarray(a)
@@ -607,18 +562,14 @@ class ImpulseCollisionHandler:
             return x1p, bq1, t_p, t_b
 
         # 1. proximity contacts at the start of the substep
-        vf, ee = self.broad_phase.query(x0[:-1], x0[:-1], delta)
-        if len(vf) + len(ee):
-            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
-            pair = np.concatenate([vf, ee])
-            idx = self._pair_vertices(kind, pair)
-            off = self._offsets(x0, idx, kind)
+        kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
+        if len(kind):
             d = np.linalg.norm(off, axis=1)
             near = d < delta
             if near.any():
-                kind, pair, idx, off, d = kind[near], pair[near], idx[near], off[near], d[near]
+                kind, pair, off, d, w = kind[near], pair[near], off[near], d[near], w[near]
+                idx = self._pair_vertices(kind, pair)
                 ee_mask = kind == 1
-                w = self._weights(x0[idx], ee_mask)
                 vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
                 vrel = np.einsum("ck,ckd->cd", w, vel)
                 n = np.divide(off, d[:, None], out=np.zeros_like(off), where=d[:, None] > 0)
@@ -667,11 +618,10 @@ class ImpulseCollisionHandler:
             ee_mask = kind == 1
             frac = toi[:, None, None]
             y = x0[idx] + frac * (x1[idx] - x0[idx])
-            w = self._weights(y, ee_mask)
+            w = self._weights(y, kind)
             n = self._normals(idx, x0, y, w, ee_mask)
             on_plane = kind == 2
             if on_plane.any():
-                w[on_plane] = [1.0, 0.0, 0.0, 0.0]
                 n[on_plane] = self.planes[pair[on_plane, 1], :3]
             vel = self._velocities_at(idx, toi * h, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
             vn, approaching = self._approach(idx, w, n, vel, x0, x1, h, cs.at_end(kind, pair, toi * h, h))
@@ -840,16 +790,11 @@ class ImpulseCollisionHandler:
         # 1. proximity contacts at the start of the substep
         kinds, pairs, idxs = [], [], []
         with paused_tape():  # decisions: off the tape
-            vf, ee = self.broad_phase.query(x0[:nv], x0[:nv], delta)
-        if len(vf) + len(ee):
-            kind = np.concatenate([np.zeros(len(vf), dtype=np.int64), np.ones(len(ee), dtype=np.int64)])
-            pair = np.concatenate([vf, ee])
-            idx = self._pair_vertices(kind, pair)
-            with paused_tape():
-                near = np.linalg.norm(self._offsets(x0, idx, kind), axis=1) < delta
-            kinds.append(kind[near])
-            pairs.append(pair[near])
-            idxs.append(idx[near])
+            kind, pair, off, _ = self._narrow.near(x0[:nv], delta * (1.0 + 1e-9))  # slack: exact test below
+        near = np.linalg.norm(off, axis=1) < delta
+        kinds.append(kind[near])
+        pairs.append(pair[near])
+        idxs.append(self._pair_vertices(kind[near], pair[near]))
         kind, pair, idx, _ = self._plane_proximity(x0, delta)
         kinds.append(kind)
         pairs.append(pair)
@@ -1045,41 +990,3 @@ def _replace_head(full: wp.array, head: np.ndarray, dtype, device) -> wp.array:
     arr = full.numpy().copy()
     arr[: len(head)] = head
     return wp.array(arr, dtype=dtype, device=device)
-
-
-def _barycentric(p, a, b, c):
-    """Barycentric weights of the closest point of triangle abc to p, (n, 3), clamped to the
-    triangle (weights of the projection, clipped and renormalised)."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = np.einsum("nd,nd->n", v0, v0)
-    d01 = np.einsum("nd,nd->n", v0, v1)
-    d11 = np.einsum("nd,nd->n", v1, v1)
-    d20 = np.einsum("nd,nd->n", v2, v0)
-    d21 = np.einsum("nd,nd->n", v2, v1)
-    den = d00 * d11 - d01 * d01
-    safe = np.where(np.abs(den) > 0, den, 1.0)
-    v = (d11 * d20 - d01 * d21) / safe
-    w = (d00 * d21 - d01 * d20) / safe
-    u = 1.0 - v - w
-    bary = np.clip(np.column_stack([u, v, w]), 0.0, 1.0)
-    s = bary.sum(1, keepdims=True)
-    bary = np.divide(bary, s, out=np.full_like(bary, 1.0 / 3.0), where=s > 0)
-    bary[np.abs(den) == 0] = 1.0 / 3.0
-    return bary
-
-
-def _segment_params(a0, a1, b0, b1):
-    """Parameters (s on a, u on b) of the closest points of two segments (clamped)."""
-    d1, d2, r = a1 - a0, b1 - b0, a0 - b0
-    a = np.einsum("nd,nd->n", d1, d1)
-    e = np.einsum("nd,nd->n", d2, d2)
-    f = np.einsum("nd,nd->n", d2, r)
-    c = np.einsum("nd,nd->n", d1, r)
-    b = np.einsum("nd,nd->n", d1, d2)
-    den = a * e - b * b
-    s = np.where(den > 1e-30 * np.maximum(a * e, 1e-300), np.clip((b * f - c * e) / np.where(den > 0, den, 1.0), 0, 1), 0.0)
-    u = np.where(e > 0, (b * s + f) / np.where(e > 0, e, 1.0), 0.0)
-    s = np.where(u < 0, np.where(a > 0, np.clip(-c / np.where(a > 0, a, 1.0), 0, 1), 0.0), s)
-    s = np.where(u > 1, np.where(a > 0, np.clip((b - c) / np.where(a > 0, a, 1.0), 0, 1), 0.0), s)
-    u = np.clip(u, 0, 1)
-    return s, u

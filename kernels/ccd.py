@@ -361,3 +361,67 @@ def coplanarity_coefficients_kernel(
     (eq. ``orthogonal_clamping_real_side``). Differentiable under a tape."""
     i = wp.tid()
     coefficients[i] = unit_scaled_cubic(query_coefficients(queries[i]))
+
+
+@wp.func
+def pair_vertex_indices(
+    kind: int,
+    pair: wp.vec2i,
+    faces: wp.array(dtype=wp.vec3i),
+    edges: wp.array(dtype=wp.vec2i),
+) -> wp.vec4i:
+    """The four vertex indices, in the query's order, of a candidate pair of a mesh:
+    ``[vertex, face]`` (kind 0: ``p, t0, t1, t2``) or ``[edge_a, edge_b]`` (kind 1:
+    ``ea0, ea1, eb0, eb1``)."""
+    if kind == VERTEX_FACE:
+        f = faces[pair[1]]
+        return wp.vec4i(pair[0], f[0], f[1], f[2])
+    a = edges[pair[0]]
+    b = edges[pair[1]]
+    return wp.vec4i(a[0], a[1], b[0], b[1])
+
+
+@wp.func
+def pair_query(
+    kind: int,
+    pair: wp.vec2i,
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    edges: wp.array(dtype=wp.vec2i),
+) -> mat83d:
+    """The (8, 3) query of a candidate pair (:func:`pair_vertex_indices`) moving from positions
+    ``x0`` at the start to ``x1`` at the end."""
+    q = pair_vertex_indices(kind, pair, faces, edges)
+    m = mat83d()
+    for k in range(4):
+        m[k] = x0[q[k]]
+        m[k + 4] = x1[q[k]]
+    return m
+
+
+@wp.kernel
+def pair_ccd_kernel(
+    kind: int,
+    pairs: wp.array(dtype=wp.vec2i),
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    edges: wp.array(dtype=wp.vec2i),
+    thickness: wp.float64,
+    counter: wp.array(dtype=wp.int32),
+    hit_pairs: wp.array(dtype=wp.vec2i),
+    hit_time: wp.array(dtype=wp.float64),
+    hit_source: wp.array(dtype=wp.int32),
+):
+    """The narrow phase of :func:`ccd_kernel` straight on a broad phase's candidate pairs
+    (indices into ``faces`` / ``edges`` of the positions ``x0``, ``x1``): the hits are appended
+    through ``counter`` (the buffers hold at least as many rows as ``pairs``), so no per-pair
+    array leaves the device."""
+    i = wp.tid()
+    r = ccd_query(kind, pair_query(kind, pairs[i], x0, x1, faces, edges), thickness)
+    if r[0] != wp.float64(0.0):
+        slot = wp.atomic_add(counter, 0, 1)
+        hit_pairs[slot] = pairs[i]
+        hit_time[slot] = r[1]
+        hit_source[slot] = wp.int32(r[2])

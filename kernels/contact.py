@@ -9,6 +9,7 @@ the distance.
 
 import warp as wp
 
+from kernels.ccd import pair_vertex_indices
 from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
@@ -16,19 +17,35 @@ from kernels.roots import cubic_roots
 
 
 @wp.kernel
-def contact_offsets_kernel(
+def pair_proximity_kernel(
+    kind: int,
+    pairs: wp.array(dtype=wp.vec2i),
     x: wp.array(dtype=wp.vec3d),
-    pairs: wp.array(dtype=wp.vec4i),
-    edge_edge: wp.array(dtype=wp.int32),
-    offset: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    edges: wp.array(dtype=wp.vec2i),
+    max_distance: wp.float64,
+    counter: wp.array(dtype=wp.int32),
+    near_pairs: wp.array(dtype=wp.vec2i),
+    near_offset: wp.array(dtype=wp.vec3d),
+    near_weights: wp.array(dtype=wp.vec4d),
 ):
-    """``offset[i]`` of pair ``pairs[i]`` (vertex-face when ``edge_edge[i] == 0``) at positions ``x``."""
+    """Candidate pairs of a broad phase (:func:`kernels.ccd.pair_vertex_indices`) whose
+    primitives at positions ``x`` are at most ``max_distance`` apart, appended through
+    ``counter`` with their offsets (the first primitive's exact closest point minus the
+    second's, see the module docstring) and the closest points' signed weights
+    (:func:`pair_weights`): the proximity test without a per-pair array leaving the device."""
     i = wp.tid()
-    q = pairs[i]
-    if edge_edge[i] == 0:
-        offset[i] = point_triangle_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
+    q = pair_vertex_indices(kind, pairs[i], faces, edges)
+    off = wp.vec3d()
+    if kind == 0:
+        off = point_triangle_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
     else:
-        offset[i] = segment_segment_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
+        off = segment_segment_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
+    if wp.dot(off, off) <= max_distance * max_distance:
+        slot = wp.atomic_add(counter, 0, 1)
+        near_pairs[slot] = pairs[i]
+        near_offset[slot] = off
+        near_weights[slot] = pair_weights(kind, x[q[0]], x[q[1]], x[q[2]], x[q[3]])
 
 
 @wp.func
@@ -250,6 +267,18 @@ def pair_weights(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec
         st = segment_segment_closest(y0, y1, y2, y3)
         return wp.vec4d(one - st[0], st[0], -(one - st[1]), -st[1])
     return wp.vec4d(one, zero, zero, zero)
+
+
+@wp.kernel
+def pair_weights_kernel(
+    kind: wp.array(dtype=wp.int32),
+    y: wp.array(dtype=wp.vec3d),
+    weights: wp.array(dtype=wp.vec4d),
+):
+    """:func:`pair_weights` of contact ``i`` (kind 0 vertex-face, 1 edge-edge, 2 vertex-plane)
+    at the four positions ``y[4 i : 4 i + 4]``."""
+    i = wp.tid()
+    weights[i] = pair_weights(kind[i], y[4 * i], y[4 * i + 1], y[4 * i + 2], y[4 * i + 3])
 
 
 @wp.func

@@ -22,6 +22,8 @@ the arrays it read), so a ``wp.Tape`` over a rollout can replay the kernels back
   ``t* = (offset - n.x0) / (n.v-)`` (design.md "Data flow"): the contact choice is a
   separate non-recorded launch (which plane is hit is piecewise constant), the response is
   differentiable so ``d x(dt) / d v-`` flows through ``t*``.
+* :func:`inverse_masses` — particle inverse masses from masses (0 for pinned), taped so that
+  ``sim.rollout`` can differentiate w.r.t. the masses.
 """
 
 import warp as wp
@@ -216,3 +218,16 @@ def respond_plane_contacts(
 
     x_out[i] = xi + vi * toi + v_plus * (dt - toi)
     v_out[i] = v_plus
+
+
+@wp.kernel
+def inverse_masses(mass: wp.array(dtype=wp.float64), inv_mass: wp.array(dtype=wp.float64)):
+    """``inv_mass = 1 / mass`` for ``mass > 0`` and 0 for pinned particles (``mass == 0``), into
+    a fresh array; taped, so gradients w.r.t. the inverse masses reach the masses
+    (``d inv / d m = -1 / m^2``; none for pinned particles)."""
+    i = wp.tid()
+    m = mass[i]
+    if m > f64(0.0):
+        inv_mass[i] = f64(1.0) / m
+    else:
+        inv_mass[i] = f64(0.0)

@@ -56,9 +56,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from collision.mesh import CollisionMesh
 from kernels import penetration as _k
 from sim.model import Model, State
-from sim.rotation import quat_rotate
 
 __all__ = [
     "DEFAULT_TOL",
@@ -294,19 +294,19 @@ class PenetrationChecker:
         if not (np.isfinite(tol) and tol >= 0.0):
             raise ValueError(f"tol must be finite and >= 0, got {tol}")
         self.tol = tol
-        self.particle_count = P = int(model.particle_count)
-        self.tris = _np(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
-        self.shape_vertices = _np(model.shape_vertices, (3,))
-        self.shape_body = _np(model.shape_vertex_body, (), np.int64)
-        self.shape_faces = _np(model.shape_faces, (3,), np.int64)
-        self.static_vertices = _np(model.static_vertices, (3,))
-        self.static_faces = _np(model.static_faces, (3,), np.int64)
+        mesh = self.mesh = CollisionMesh.from_model(model)
+        self.particle_count = P = mesh.particle_count
+        self.shape_vertices = mesh.shape_local
+        self.shape_body = mesh.shape_body
+        self.static_vertices = mesh.static_vertices
+        fo = mesh.face_offsets
+        self.tris = mesh.faces[fo[0]:fo[1]]
+        self.static_faces = mesh.faces[fo[2]:fo[3]] - mesh.static_offset
         self.planes = _np(model.planes, (4,)) if model.plane_count else np.zeros((0, 4))
-        self.body_count = B = int(model.body_count)
-        Vs, Vg = len(self.shape_vertices), len(self.static_vertices)
-        self.vertex_offsets = (0, P, P + Vs, P + Vs + Vg)
-        T, Fs = len(self.tris), len(self.shape_faces)
-        self.face_offsets = (0, T, T + Fs, T + Fs + len(self.static_faces))
+        self.body_count = B = mesh.body_count
+        Vg = len(self.static_vertices)
+        self.vertex_offsets = (0, P, mesh.static_offset, mesh.vertex_count)
+        self.face_offsets = fo
 
         static_comp = vertex_components(self.static_faces, Vg)
         C = int(static_comp.max()) + 1 if Vg else 0
@@ -316,9 +316,7 @@ class PenetrationChecker:
         self.vertex_group = np.concatenate(
             [np.zeros(P, np.int64), 1 + self.shape_body, 1 + B + static_comp]
         )
-        self.faces = np.concatenate(
-            [self.tris, self.shape_faces + P, self.static_faces + P + Vs]
-        ).astype(np.int64)
+        self.faces = mesh.faces
         self.face_group = self.vertex_group[self.faces[:, 0]] if len(self.faces) else np.zeros(0, np.int64)
         self.group_count = 1 + B + C
         self.group_static = np.zeros(self.group_count, dtype=bool)
@@ -357,12 +355,7 @@ class PenetrationChecker:
             raise ValueError(f"state has {len(pq)} particles, the model {self.particle_count}")
         if len(bq) != self.body_count:
             raise ValueError(f"state has {len(bq)} bodies, the model {self.body_count}")
-        if len(self.shape_vertices):
-            q = bq[self.shape_body]
-            shape = q[:, :3] + quat_rotate(q[:, 3:], self.shape_vertices)
-        else:
-            shape = np.zeros((0, 3))
-        return np.concatenate([pq, shape, self.static_vertices])
+        return self.mesh.positions(pq, bq)
 
     # ---------------------------------------------------------------------------- checks
     def check(self, state: State | Mapping) -> PenetrationReport:

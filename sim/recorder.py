@@ -59,6 +59,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from collision.mesh import CollisionMesh
 from sim.logging import RerunLogger
 from sim.model import Model, State
 from sim.penetration import state_positions, vertex_components
@@ -221,17 +222,15 @@ class SimRecorder:
         self._contacts_seen = False
         self.particle_count = int(model.particle_count)
         self.body_count = int(model.body_count)
-        self.tris = _np(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
+        mesh = self.mesh = CollisionMesh.from_model(model)
+        fo = mesh.face_offsets
+        self.tris = mesh.faces[fo[0]:fo[1]]
         used = np.zeros(self.particle_count, dtype=bool)
         used[self.tris.reshape(-1)] = True
         self.loose_particles = np.flatnonzero(~used)
-        x0 = _np(model.particle_q, (3,))
-        sv = _np(model.shape_vertices, (3,))
-        sb = _np(model.shape_vertex_body, (), np.int64)
-        bq = _np(model.body_q, (7,))
-        gv = _np(model.static_vertices, (3,))
-        pts = [x0, gv] + ([bq[sb, :3] + sv] if len(sv) else [])  # rotation ignored: extent only
-        allp = np.concatenate(pts) if sum(len(p) for p in pts) else np.zeros((1, 3))
+        allp = mesh.positions(_np(model.particle_q, (3,)), _np(model.body_q, (7,)))
+        if not len(allp):
+            allp = np.zeros((1, 3))
         self.bounds = (allp.min(axis=0), allp.max(axis=0))
         diag = float(np.linalg.norm(self.bounds[1] - self.bounds[0]))
         self.scene_diagonal = diag
@@ -256,9 +255,9 @@ class SimRecorder:
         if len(self.loose_particles):
             rec.log("/world/particles", rr.Points3D.from_fields(colors=CLOTH_COLOR), static=True)
 
-        sv = _np(m.shape_vertices, (3,))
-        sb = _np(m.shape_vertex_body, (), np.int64)
-        sf = _np(m.shape_faces, (3,), np.int64)
+        mesh, fo = self.mesh, self.mesh.face_offsets
+        sv, sb = mesh.shape_local, mesh.shape_body
+        sf = mesh.faces[fo[1]:fo[2]] - mesh.shape_offset
         for b in range(self.body_count):
             vid = np.flatnonzero(sb == b)
             faces = sf[np.all(np.isin(sf, vid), axis=1)]
@@ -271,8 +270,8 @@ class SimRecorder:
                 static=True,
             )
 
-        gv = _np(m.static_vertices, (3,))
-        gf = _np(m.static_faces, (3,), np.int64)
+        gv = mesh.static_vertices
+        gf = mesh.faces[fo[2]:fo[3]] - mesh.static_offset
         comp = vertex_components(gf, len(gv))
         self.static_mesh_count = int(comp.max()) + 1 if len(gv) else 0
         face_comp = comp[gf[:, 0]] if len(gf) else np.zeros(0, np.int64)

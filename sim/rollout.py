@@ -5,7 +5,11 @@ and the collision response of :class:`collision.response.ImpulseCollisionHandler
 form (``differentiable=True``: decisions on the host, the response's smooth map as taped Warp
 launches; design.md "Differentiating collision response: decide, then replay"). Its outputs are
 torch tensors inside one ``torch.autograd.Function`` whose backward runs the ``wp.Tape``, so
-``torch.optim`` can optimise initial particle velocities and body twists through contacts.
+``torch.optim`` can optimise initial particle velocities and body twists through contacts, and
+(optionally) particle masses and spring stiffnesses: given as tensors, they replace the model's
+arrays in a shallow copy of the Model (the caller's Model is never changed), the inverse masses
+are computed from them by a taped kernel, and their gradients come from every launch that reads
+them (springs, integration, the replayed impulse solve).
 
 Memory: a taped step keeps every substep's arrays. ``checkpoint_every=K`` keeps only the state
 at the start of each segment of K steps in the forward and re-runs each segment under a tape in
@@ -22,6 +26,8 @@ Example (gradient of a particle's final height w.r.t. its initial velocity, thro
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -31,6 +37,7 @@ import warp as wp
 
 from collision.response import ImpulseCollisionHandler
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
+from kernels.integrate import inverse_masses
 from sim.events import check_events, event_outputs
 from sim.integrator import SemiImplicitIntegrator, check_integrator, make_integrator
 from sim.model import Model, State
@@ -85,6 +92,38 @@ def _check_velocities(value, count: int, width: int, name: str) -> torch.Tensor 
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name} must be finite (it holds NaN or inf)")
     return value
+
+
+def _check_parameter(value, count: int, name: str, unit: str) -> torch.Tensor | None:
+    """A per-particle or per-spring parameter: None, or a finite, non-negative float64 torch
+    tensor of shape (count,)."""
+    if value is None:
+        return None
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch tensor of shape ({count},) [{unit}], got {type(value).__name__}")
+    if value.dtype != torch.float64:
+        raise ValueError(f"{name} must be float64, got {value.dtype}")
+    if tuple(value.shape) != (count,):
+        raise ValueError(f"{name} must have shape ({count},), got {tuple(value.shape)}")
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} must be finite (it holds NaN or inf)")
+    if bool((value < 0.0).any()):
+        raise ValueError(f"{name} must be >= 0 [{unit}], got a negative value")
+    return value
+
+
+def _check_parameters(model: Model, particle_mass, spring_stiffness):
+    mass = _check_parameter(particle_mass, model.particle_count, "particle_mass", "kg")
+    if mass is not None and model.particle_count:
+        pinned = model.particle_mass.numpy() == 0.0
+        zero = mass.detach().cpu().numpy() == 0.0
+        if np.any(pinned != zero):
+            i = int(np.flatnonzero(pinned != zero)[0])
+            raise ValueError(
+                f"particle_mass must keep the model's pinned particles (mass 0) pinned and the others free "
+                f"(mass > 0): particle {i} is {'pinned' if pinned[i] else 'free'} in the model")
+    stiffness = _check_parameter(spring_stiffness, model.spring_count, "spring_stiffness", "N/m")
+    return mass, stiffness
 
 
 def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative):
@@ -148,6 +187,8 @@ class _Runner:
         self.max_derivative = max_derivative
         self.handler = None
         self.tape = None
+        self.param_tape = None  # the inverse masses from the masses (when their gradient is wanted)
+        self.params: dict[str, wp.array] = {}  # the parameter arrays whose gradients are wanted
         self.states: list[State] = []
         self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
                       "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0}
@@ -163,6 +204,35 @@ class _Runner:
 
     def _counting(self, handler):
         return _CountingHandler(handler, self.stats)
+
+    def _set_parameters(self, particle_mass, spring_stiffness, mass_grad: bool, stiffness_grad: bool) -> None:
+        """Replaces ``self.model`` by a shallow copy whose ``particle_mass``, ``particle_inv_mass``
+        and ``spring_stiffness`` are fresh arrays from the tensors given (None keeps the model's);
+        the inverse masses come from the masses by a launch on ``self.param_tape`` when the
+        masses' gradient is wanted. Must run before the collision handler is built (it takes
+        the inverse-mass array)."""
+        if particle_mass is None and spring_stiffness is None:
+            return
+        m, d = self.model, self.model.device
+        changes = {}
+        if particle_mass is not None:
+            mass = wp.array(particle_mass.detach().cpu().numpy(), dtype=wp.float64, device=d, requires_grad=mass_grad)
+            inv = wp.zeros(m.particle_count, dtype=wp.float64, device=d, requires_grad=mass_grad)
+            if mass_grad:
+                self.param_tape = wp.Tape()
+            with self.param_tape if mass_grad else contextlib.nullcontext():
+                if m.particle_count:
+                    wp.launch(inverse_masses, dim=m.particle_count, inputs=[mass], outputs=[inv], device=d)
+            changes.update(particle_mass=mass, particle_inv_mass=inv)
+            if mass_grad:
+                self.params.update(particle_mass=mass, particle_inv_mass=inv)
+        if spring_stiffness is not None:
+            k = wp.array(spring_stiffness.detach().cpu().numpy(), dtype=wp.float64, device=d,
+                         requires_grad=stiffness_grad)
+            changes["spring_stiffness"] = k
+            if stiffness_grad:
+                self.params["spring_stiffness"] = k
+        self.model = dataclasses.replace(m, **changes)
 
     def _initial_state(self, particle_qd, body_qd, requires_grad: bool) -> State:
         s = self.model.state(requires_grad=requires_grad)
@@ -209,7 +279,10 @@ class _Runner:
             self.stats["contact_constrained"] += int(getattr(integ, "total_constrained", 0))
         return states if requires_grad else [s]
 
-    def forward(self, particle_qd, body_qd, requires_grad: bool):
+    def forward(self, particle_qd, body_qd, requires_grad: bool, particle_mass=None, spring_stiffness=None,
+                mass_grad: bool = False, stiffness_grad: bool = False):
+        self._set_parameters(particle_mass, spring_stiffness, mass_grad and requires_grad,
+                             stiffness_grad and requires_grad)
         start = self._initial_state(particle_qd, body_qd, requires_grad and self.checkpoint_every is None)
         record = [start.numpy()]
         self.segment_starts = {0: record[0]}
@@ -245,9 +318,17 @@ class _Runner:
         arr.grad.assign(wp.array(arr.grad.numpy() + grad, dtype=arr.dtype, device=arr.device))
 
     def backward(self, grads: dict):
-        """Adjoints of the initial velocities (particles (P, 3), bodies (B, 6)) for the output
-        adjoints ``grads[name]`` of shape (N+1, ...)."""
+        """Adjoints of the initial velocities (particles (P, 3), bodies (B, 6)) and of the
+        parameters (``{"particle_mass": (P,), "spring_stiffness": (S,)}``, those whose gradient
+        was asked for) for the output adjoints ``grads[name]`` of shape (N+1, ...).
+
+        The parameters are shared by all segments: their adjoints are read after each
+        segment's backward pass and summed (each segment's tape is zeroed before the next)."""
         names = ("particle_q", "particle_qd", "body_q", "body_qd")
+        for arr in self.params.values():
+            if arr.shape[0]:
+                arr.grad.zero_()
+        param_sum = {name: np.zeros(a.shape[0]) for name, a in self.params.items()}
         carry = {name: grads[name][self.steps].copy() for name in names}
         if self.checkpoint_every is None:
             segments = [(0, self.steps, self.tape, self.states)]
@@ -265,22 +346,42 @@ class _Runner:
                 for name in names:
                     self._seed(getattr(s, name), carry[name] if step == b else grads[name][step])
             tape.backward()
+            for name, arr in self.params.items():
+                if arr.shape[0]:
+                    param_sum[name] += arr.grad.numpy()
+                    arr.grad.zero_()
             s0 = states[0]
             carry = {name: (getattr(s0, name).grad.numpy() if getattr(s0, name).shape[0] else np.zeros_like(grads[name][a]))
                      + grads[name][a] for name in names}
             tape.zero()
         self.tape = None
         self.states = []
-        return carry["particle_qd"], carry["body_qd"]
+        params = {}
+        if "particle_mass" in self.params:
+            mass, inv = self.params["particle_mass"], self.params["particle_inv_mass"]
+            params["particle_mass"] = param_sum["particle_mass"]
+            if mass.shape[0]:
+                # through the taped inverse masses: d inv / d m
+                inv.grad.assign(wp.array(param_sum["particle_inv_mass"], dtype=wp.float64, device=inv.device))
+                self.param_tape.backward()
+                params["particle_mass"] = param_sum["particle_mass"] + mass.grad.numpy()
+                self.param_tape.zero()
+        if "spring_stiffness" in self.params:
+            params["spring_stiffness"] = param_sum["spring_stiffness"]
+        return carry["particle_qd"], carry["body_qd"], params
 
 
 class _RolloutFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, particle_qd, body_qd, runner, has_particle, has_body):
-        needs = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
-        out = runner.forward(particle_qd if has_particle else None, body_qd if has_body else None, needs)
+    def forward(ctx, particle_qd, body_qd, particle_mass, spring_stiffness, runner, has_particle, has_body, has_mass,
+                has_stiffness):
+        needs = any(ctx.needs_input_grad[:4])
+        out = runner.forward(particle_qd if has_particle else None, body_qd if has_body else None, needs,
+                             particle_mass if has_mass else None, spring_stiffness if has_stiffness else None,
+                             mass_grad=has_mass and ctx.needs_input_grad[2],
+                             stiffness_grad=has_stiffness and ctx.needs_input_grad[3])
         ctx.runner = runner
-        ctx.input_devices = (particle_qd.device, body_qd.device)
+        ctx.input_devices = (particle_qd.device, body_qd.device, particle_mass.device, spring_stiffness.device)
         ctx.shapes = {k: v.shape for k, v in out.items()}
         return tuple(torch.from_numpy(np.ascontiguousarray(out[k])) for k in ("particle_q", "particle_qd", "body_q", "body_qd"))
 
@@ -289,14 +390,17 @@ class _RolloutFunction(torch.autograd.Function):
         def arr(g, name):
             return np.zeros(ctx.shapes[name]) if g is None else g.detach().cpu().numpy().astype(np.float64)
 
-        gp, gb = ctx.runner.backward({
+        gp, gb, params = ctx.runner.backward({
             "particle_q": arr(g_q, "particle_q"), "particle_qd": arr(g_qd, "particle_qd"),
             "body_q": arr(g_bq, "body_q"), "body_qd": arr(g_bqd, "body_qd"),
         })
         # gradients on the inputs' devices (the rollout itself computes on the model's device)
         gp = torch.from_numpy(np.ascontiguousarray(gp)).to(ctx.input_devices[0])
         gb = torch.from_numpy(np.ascontiguousarray(gb)).to(ctx.input_devices[1])
-        return gp, gb, None, None, None
+        gm, gk = (None if name not in params else torch.from_numpy(np.ascontiguousarray(params[name])).to(device)
+                  for name, device in (("particle_mass", ctx.input_devices[2]),
+                                       ("spring_stiffness", ctx.input_devices[3])))
+        return gp, gb, gm, gk, None, None, None, None, None
 
 
 def rollout(
@@ -314,6 +418,8 @@ def rollout(
     event_derivative: str = "mollified",
     integrator: str = "semi_implicit",
     integrator_options: dict | None = None,
+    particle_mass: torch.Tensor | None = None,
+    spring_stiffness: torch.Tensor | None = None,
 ) -> RolloutResult:
     """Simulates ``steps`` steps of ``dt`` [s] (each split into ``substeps``) from the model's
     initial state, differentiably.
@@ -345,13 +451,29 @@ def rollout(
         integrator_options: the implicit integrator's options (:data:`sim.implicit.OPTIONS`:
             ``tolerance``, ``max_iterations``, ``contact_passes``, ``max_strain_step``,
             ``max_refinements``).
+        particle_mass: particle masses [kg], torch float64 (P,), finite and >= 0; None = the
+            model's. The model's pinned particles (mass 0) must have mass 0 here and every other
+            particle a positive mass (pinning cannot change). The inverse masses used by the
+            integrator and the collision response are computed from it (1/m, 0 for pinned).
+        spring_stiffness: spring stiffnesses [N/m], torch float64 (S,), finite and >= 0; None =
+            the model's.
+
+    Either parameter replaces the model's array in a shallow copy of ``model`` (``model``
+    itself is not changed). When it requires gradients, they flow through everything the
+    rollout does with it: spring forces, the integration (semi-implicit, or the implicit
+    integrator's solve through its implicit adjoint), the particle-plane contacts and the
+    replayed impulse solve (whose matrix holds the inverse masses). With ``checkpoint_every``
+    the parameters' gradients are summed over the recomputed segments. Particles inside an
+    impact zone (``stats["untaped_substeps"]``) carry no derivative through that substep, for
+    these parameters as for the velocities; pinned particles get a zero mass gradient.
 
     Returns:
-        :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd`` and
-        ``body_qd`` when those require gradients.
+        :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd``,
+        ``body_qd``, ``particle_mass`` and ``spring_stiffness`` when those require gradients.
 
     Raises:
         ValueError: naming the argument, for wrong types, shapes, dtypes, non-finite values,
+            negative masses or stiffnesses, masses that change which particles are pinned,
             ``steps < 1``, ``substeps < 1`` or ``dt <= 0``; before anything runs.
     """
     steps, dt, substeps, particle_qd, body_qd, events = _check_args(
@@ -359,12 +481,16 @@ def rollout(
     if event_derivative not in DERIVATIVES:
         raise ValueError(f"event_derivative must be one of {DERIVATIVES}, got {event_derivative!r}")
     check_integrator(integrator, integrator_options)
+    particle_mass, spring_stiffness = _check_parameters(model, particle_mass, spring_stiffness)
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
                      integrator_options)
     has_p, has_b = particle_qd is not None, body_qd is not None
+    has_m, has_k = particle_mass is not None, spring_stiffness is not None
     p_in = particle_qd if has_p else torch.zeros((model.particle_count, 3), dtype=torch.float64)
     b_in = body_qd if has_b else torch.zeros((model.body_count, 6), dtype=torch.float64)
-    q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, runner, has_p, has_b)
+    m_in = particle_mass if has_m else torch.zeros(model.particle_count, dtype=torch.float64)
+    k_in = spring_stiffness if has_k else torch.zeros(model.spring_count, dtype=torch.float64)
+    q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, m_in, k_in, runner, has_p, has_b, has_m, has_k)
     roots, coords = event_outputs(model, events, q, bq, dt, float(max_derivative), event_derivative)
     return RolloutResult(
         particle_q=q, particle_qd=qd, body_q=bq, body_qd=bqd,

@@ -320,3 +320,113 @@ def test_mesh_ccd_cloth_drop_earliest_time_and_errors():
     x_nan[3, 1] = np.nan
     with pytest.raises(ValueError, match="x1"):
         mesh_ccd(x0, x_nan, all_faces)
+
+
+# ------------------------------------------------------------------ candidates on the device
+
+
+def _crumpled_sheets(seed: int):
+    """Two 7x7 sheets 1 cm apart, crumpled by noise, moving at random: self and mutual pairs."""
+    rng = np.random.default_rng(seed)
+    n = 7
+    xs, ys = np.meshgrid(np.linspace(0, 0.3, n), np.linspace(0, 0.3, n))
+    sheet = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
+    faces = np.array(faces)
+    x0 = np.vstack([sheet, sheet + [0.01, 0.02, 0.01]]) + rng.normal(scale=4e-3, size=(2 * n * n, 3))
+    x1 = x0 + rng.normal(scale=1.5e-2, size=x0.shape)
+    return x0, x1, np.vstack([faces, faces + n * n])
+
+
+def _point_segment_distance(p, a, b):
+    ab = b - a
+    s = np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0)
+    return np.linalg.norm(p - (a + s * ab))
+
+
+def _point_triangle_distance(p, a, b, c):
+    """Exact distance (plane projection inside the triangle, else the nearest edge)."""
+    n = np.cross(b - a, c - a)
+    q = p - np.dot(p - a, n) / np.dot(n, n) * n
+    inside = all(np.dot(np.cross(v1 - v0, q - v0), n) >= 0 for v0, v1 in ((a, b), (b, c), (c, a)))
+    if inside:
+        return np.linalg.norm(p - q)
+    return min(_point_segment_distance(p, a, b), _point_segment_distance(p, b, c), _point_segment_distance(p, c, a))
+
+
+def _segment_segment_distance(a0, a1, b0, b1):
+    """Exact distance: the unconstrained minimum when it lies in the unit square, else the
+    smallest of the four edge minima (each a point-segment distance)."""
+    u, v, w = a1 - a0, b1 - b0, a0 - b0
+    A, B, C, D, E = u @ u, u @ v, v @ v, u @ w, v @ w
+    det = A * C - B * B
+    best = min(_point_segment_distance(a0, b0, b1), _point_segment_distance(a1, b0, b1),
+               _point_segment_distance(b0, a0, a1), _point_segment_distance(b1, a0, a1))
+    if det > 1e-14 * A * C:
+        s, t = (B * E - C * D) / det, (A * E - B * D) / det
+        if 0 <= s <= 1 and 0 <= t <= 1:
+            best = min(best, np.linalg.norm(w + s * u - t * v))
+    return best
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_distances(seed):
+    """CandidateNarrowPhase (pairs and positions read on the device, hits appended) gives the
+    hits of mesh_ccd (stacked queries through narrow_phase) bit for bit and in its sorted order;
+    its proximity pairs are exactly the non-adjacent pairs an independent numpy distance puts
+    within the limit."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    x0, x1, faces = _crumpled_sheets(seed)
+    edges = mesh_edges(faces)
+    bp = BroadPhase(faces, edges, num_vertices=len(x0))
+    narrow = CandidateNarrowPhase(bp)
+    kind, pair, toi, source = narrow.ccd(x0, x1)
+    ref = mesh_ccd(x0, x1, faces, edges)
+    want_pair = np.vstack([ref.vf[ref.vf_hit], ref.ee[ref.ee_hit]])
+    want_kind = np.r_[np.zeros(ref.vf_hit.sum(), int), np.ones(ref.ee_hit.sum(), int)]
+    want_toi = np.r_[ref.vf_toi[ref.vf_hit], ref.ee_toi[ref.ee_hit]]
+    assert len(kind) > 20 and (kind == 0).any() and (kind == 1).any()
+    np.testing.assert_array_equal(kind, want_kind)
+    np.testing.assert_array_equal(pair, want_pair)
+    np.testing.assert_array_equal(toi, want_toi)
+    assert set(np.unique(source)) <= {0, 1, 2, 3, 4}
+
+    limit = 0.012
+    kind, pair, off, weights = narrow.near(x0, limit)
+    got = {(int(k), int(a), int(b)) for k, (a, b) in zip(kind, pair)}
+    dist = np.linalg.norm(off, axis=1)
+    want, border = set(), set()
+    for v in range(len(x0)):
+        for f, tri in enumerate(faces):
+            if v in tri:
+                continue
+            d = _point_triangle_distance(x0[v], *x0[tri])
+            (border if abs(d - limit) < 1e-12 else want if d < limit else set()).add((0, v, f))
+    for a in range(len(edges)):
+        for b in range(a + 1, len(edges)):
+            if set(edges[a]) & set(edges[b]):
+                continue
+            d = _segment_segment_distance(*x0[edges[a]], *x0[edges[b]])
+            (border if abs(d - limit) < 1e-12 else want if d < limit else set()).add((1, a, b))
+    assert len(want) > 50
+    assert got - border == want - border
+    ref_d = {(0, v, f): _point_triangle_distance(x0[v], *x0[faces[f]]) for (k, v, f) in got if k == 0}
+    for (k, a, b), d in zip(((int(k), int(a), int(b)) for k, (a, b) in zip(kind, pair)), dist):
+        if k == 0:
+            assert abs(d - ref_d[(0, a, b)]) <= 1e-12
+    order = np.lexsort((pair[:, 1], pair[:, 0], kind))
+    np.testing.assert_array_equal(order, np.arange(len(kind)))
+    # the weights are the closest points': side A sums to 1, side B to -1, and the weighted
+    # positions give the offset
+    idx = np.where((kind == 0)[:, None], np.column_stack([pair[:, 0], faces[np.where(kind == 0, pair[:, 1], 0)]]),
+                   np.column_stack([edges[pair[:, 0]], edges[pair[:, 1]]]))
+    split = np.where(kind == 0, 1, 2)[:, None] > np.arange(4)
+    np.testing.assert_allclose(np.where(split, weights, 0).sum(1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.where(split, 0, weights).sum(1), -1.0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ck,ckd->cd", weights, x0[idx]), off, atol=1e-12)

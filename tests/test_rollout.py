@@ -231,29 +231,131 @@ def test_checkpointed_backward_equals_the_full_tape():
 
 
 # ------------------------------------------------------------------------------ grazing
+# scenes/grazing.py: a particle grazing a tilting flap, a true double root of the coplanarity cubic
 
 
-GROWTH = 10.0
-"""Near the hit/miss boundary of the sweep the gradient exceeds this multiple of the free-flight
-gradient (measured: 13x at the offset 6.3e-3)."""
+def mollified_bound(m: float) -> float:
+    """Stated bound of the mollified gradient over the whole grazing sweep, in units of the
+    free-flight gradient: 1.2 M + 2 (measured: plateau 1.16 M for M = 1000 and M = 10, largest
+    1161.8 and 12.5 on a 41-point sweep; first-order prediction of the contact's share
+    2 M (1 + e) (t_m / h) (T - t_m) / T = 1.125 M, see scenes/grazing.py; the 2 covers the
+    unclamped terms, free flight and the bounce)."""
+    return 1.2 * m + 2.0
+
+UNMOLLIFIED_OVER_MOLLIFIED = 10.0
+"""At the sweep's smallest offset (1e-11) the unmollified gradient exceeds this multiple of the
+largest mollified one (measured 65x)."""
 
 
-def test_grazing_sweep_gradients_finite_and_equal_to_the_exact_ones():
-    """Across the sweep the root's derivative stays far from the clamp (|dt*/dp| < 10 for the
-    unit-scaled cubic): the mollified gradient is the exact one, finite, and grows near the
-    boundary. The sweep's hit/miss boundary is where the coplanarity point leaves the face
-    (a simple root), not a tangency, so neither gradient blows up there; the bound at a double
-    root is tested on the roots themselves (tests/test_roots_derivatives.py)."""
+@pytest.fixture(scope="module")
+def grazing_sweep():
     from scenes.grazing import sweep
 
-    result = sweep()
-    free, mollified, plain = result["free"], result["mollified"], result["unmollified"]
-    assert abs(free - 12 * DT) < 1e-12  # free flight: d x / d v_x = T
-    assert np.all(result["contacts"] > 0)  # every aim of the sweep hits
-    assert np.all(np.isfinite(mollified)) and np.all(np.isfinite(plain))
-    np.testing.assert_allclose(mollified, plain, rtol=1e-10)
-    assert np.abs(plain).max() > GROWTH * abs(free)
-    assert abs(plain[-1]) > 2.5 * abs(plain[0])
+    return sweep(other_max_derivatives=(10.0,), fd_steps=(2.5e-4,))
+
+
+def test_grazing_flap_is_a_true_double_root_of_the_substep_cubic():
+    """Independent of the simulator (exact rational arithmetic, sympy): at the threshold aim the
+    coplanarity cubic of the substep holding t_m, built from the straight paths of the four
+    points from the substep's start to its end as in kernels/ccd_common.py, has p = p' = 0 at
+    s = 1/2 and p'' != 0 (a double, not a triple root; zero discriminant), with the particle
+    strictly inside the flap there; deeper aims give two roots in that substep, shallower ones
+    no root in the whole rollout."""
+    import sympy as sp
+
+    from scenes import grazing as g
+
+    s = sp.Symbol("s")
+    h = sp.Rational(g.DT) / g.SUBSTEPS
+    tm = sp.Rational(g.MEET_TIME)
+    j = int(sp.floor(tm / h))
+    assert j == 1 and tm / h - j == sp.Rational(1, 2)  # the middle of the second substep
+
+    def points(vz, t):
+        pos, vel = g.initial_state(vz)
+        return [sp.Matrix([sp.Rational(c) for c in p]) + t * sp.Matrix([sp.Rational(c) for c in v])
+                for p, v in zip(pos, vel)]
+
+    def cubic(vz, first, last):
+        """(x_t0 - x_p) x (x_t1 - x_p) . (x_t2 - x_p) on the straight paths from time `first` to
+        `last`, as a polynomial in the fraction s of that interval."""
+        start, end = points(vz, first), points(vz, last)
+        x = [a + s * (b - a) for a, b in zip(start, end)]
+        p = x[g.PARTICLE]
+        return sp.Poly(sp.expand((x[0] - p).cross(x[1] - p).dot(x[2] - p)), s)
+
+    vz = sp.Rational(g.THRESHOLD_VZ)
+    p = cubic(vz, j * h, (j + 1) * h)
+    assert p.degree() == 3 and p.LC() != 0
+    half = sp.Rational(1, 2)
+    assert p.eval(half) == 0 and p.diff(s).eval(half) == 0 and p.diff(s).diff(s).eval(half) != 0
+    assert sp.discriminant(p) == 0
+    # the coplanarity point at t_m: barycentric coordinates of the particle in the flap
+    x = points(vz, tm)
+    a, b, c, q = x[0], x[1], x[2], x[g.PARTICLE]
+    area = (b - a).cross(c - a)
+    bary = [(c - b).cross(q - b).dot(area), (a - c).cross(q - c).dot(area), (b - a).cross(q - a).dot(area)]
+    bary = [w / area.dot(area) for w in bary]
+    assert sum(bary) == 1 and min(bary) > sp.Rational(1, 5)
+    # deeper: two roots in the substep; shallower: none anywhere in the rollout
+    deeper = cubic(vz * (1 + sp.Rational(1, 10**6)), j * h, (j + 1) * h)
+    assert deeper.count_roots(0, 1) == 2
+    shallower = cubic(vz * (1 - sp.Rational(1, 10**6)), 0, g.STEPS * sp.Rational(g.DT))
+    assert shallower.count_roots(0, 1) == 0
+
+
+def test_grazing_sweep_hits_misses_and_free_flight(grazing_sweep):
+    """The simulator agrees with the design: every aim deeper than the threshold hits (down to a
+    relative 1e-11), every shallower one misses with exactly the free-flight gradient T; no
+    impact zones."""
+    from scenes import grazing as g
+
+    r = grazing_sweep
+    t_end = g.STEPS * float(g.DT)
+    assert abs(r["free"] - t_end) < 1e-12  # free flight: d z / d v_z = T
+    assert np.all(r["contacts"] == 1) and np.all(r["failsafe"] == 0)
+    assert np.all(r["miss_contacts"] == 0)
+    np.testing.assert_allclose(r["miss_gradients"], r["free"], rtol=1e-12)
+
+
+def test_grazing_mollified_gradient_is_bounded_over_the_whole_sweep(grazing_sweep):
+    """Mollified (M = 1000 and M = 10): finite, within mollified_bound(M) times free flight
+    everywhere, and levelled off at the smallest offsets (not growing)."""
+    r = grazing_sweep
+    free = abs(r["free"])
+    for m, grads in ((1000.0, r["mollified"]), (10.0, r["by_max_derivative"][10.0])):
+        assert np.all(np.isfinite(grads))
+        assert np.abs(grads).max() <= mollified_bound(m) * free
+        tail = grads[r["offsets"] <= 1e-9]
+        assert len(tail) >= 3 and np.ptp(tail) <= 1e-3 * np.abs(tail).max()
+
+
+def test_grazing_unmollified_gradient_blows_up_like_offset_to_the_minus_half(grazing_sweep):
+    """Unmollified -1/p'(t*): grows like offset^(-1/2) (fitted slope in [-0.55, -0.45]) past
+    UNMOLLIFIED_OVER_MOLLIFIED times the largest mollified gradient; it is the exact derivative:
+    central differences of the forward agree (1e-3) down to the offset 1e-9, where the mollified
+    one is already 6x smaller."""
+    r = grazing_sweep
+    k, plain = r["offsets"], np.abs(r["unmollified"])
+    assert k.min() <= 1e-11
+    assert plain[np.argmin(k)] >= UNMOLLIFIED_OVER_MOLLIFIED * np.abs(r["mollified"]).max()
+    near = k <= 1e-6
+    slope = np.polyfit(np.log(k[near]), np.log(plain[near]), 1)[0]
+    assert -0.55 <= slope <= -0.45
+    fd_ok = (k <= 1e-7) & (k >= 1e-9)
+    assert fd_ok.sum() == 3
+    np.testing.assert_allclose(r["unmollified"][fd_ok], r["fd"][0][fd_ok], rtol=1e-3)
+    assert np.abs(r["unmollified"][k == 1e-9]) > 5 * np.abs(r["mollified"][k == 1e-9])
+
+
+def test_grazing_away_from_the_tangency_mollified_equals_unmollified_and_finite_differences(grazing_sweep):
+    """At offsets >= 1e-6 the contact is far from the clamp (|p'(t*)| of the unit-scaled cubic
+    above 1/M): both derivatives are the same exact one and match central differences (1e-5)."""
+    r = grazing_sweep
+    far = r["offsets"] >= 1e-6
+    assert far.sum() >= 5
+    np.testing.assert_allclose(r["mollified"][far], r["unmollified"][far], rtol=1e-10)
+    np.testing.assert_allclose(r["mollified"][far], r["fd"][0][far], rtol=1e-5)
 
 
 def test_readme_example_optimises_a_bounce_to_a_target():
@@ -368,5 +470,6 @@ def test_tape_holds_the_replay_only_no_decisions_or_iterative_solves():
             "time_of_impact_bodies_kernel"} <= kernels
     # the solve's implicit adjoint (a transposed solve), recorded as a function
     assert any(callable(launch) and "_dense_solve" in getattr(launch, "__qualname__", "") for launch in tape.launches)
-    for decision in ("ccd_kernel", "solve_contacts_kernel", "dense_solve_kernel", "contact_offsets_kernel"):
+    for decision in ("ccd_kernel", "pair_ccd_kernel", "pair_proximity_kernel", "solve_contacts_kernel",
+                     "dense_solve_kernel"):
         assert decision not in kernels

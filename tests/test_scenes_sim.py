@@ -210,9 +210,14 @@ def test_grazing_scene_cli(tmp_path):
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads(proc.stdout.splitlines()[-1])
-    assert summary["free_flight_gradient"] == pytest.approx(12 / 60.0, rel=1e-12)
+    assert summary["free_flight_gradient"] == pytest.approx(1 / 60.0, rel=1e-12)
     assert len(summary["mollified"]) == len(summary["unmollified"]) == 3
-    assert summary["max_mollified_over_free"] == pytest.approx(summary["max_unmollified_over_free"], rel=1e-9)  # the clamp never acts here
+    assert summary["offsets"] == pytest.approx([1e-1, 1e-6, 1e-11])
+    assert summary["contacts"] == [1, 1, 1]
+    assert summary["miss_gradients"] == pytest.approx([summary["free_flight_gradient"]] * 3, rel=1e-12)
+    # a true double root: the mollified gradient (M = 1000) bounded, the unmollified one blowing up
+    assert summary["max_mollified_over_free"] <= 1.2 * 1000 + 2  # tests/test_rollout.py mollified_bound
+    assert summary["max_unmollified_over_free"] >= 10 * summary["max_mollified_over_free"]
     from rerun.chunk import RrdReader
 
     entities = {chunk.entity_path for chunk in RrdReader(out).stream().to_chunks()}

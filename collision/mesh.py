@@ -1,0 +1,156 @@
+"""The collidable surface of a model, built once: :class:`CollisionMesh`.
+
+One numbering of every vertex that can touch something, shared by the collision response
+(:mod:`collision.response`), the penetration checker (:mod:`sim.penetration`) and the recorder
+(:mod:`sim.recorder`), after ipc-toolkit's ``CollisionMesh``:
+
+* vertices ``[0, P)``: the particles (cloth and loose particles, in the model's order);
+* ``[P, P + S)``: the rigid bodies' surface vertices (body frame in :attr:`CollisionMesh.local`);
+* ``[P + S, P + S + G)``: the static meshes' vertices (world frame in ``local``).
+
+Each vertex has a type (:data:`VERTEX_PARTICLE`, :data:`VERTEX_BODY`, :data:`VERTEX_STATIC`, the
+constants of :mod:`kernels.contact`) and an owner (particle index, body index, or 0), and
+:meth:`CollisionMesh.positions` / :meth:`CollisionMesh.pose` put them in the world for a state,
+on the host or with the Warp kernel :func:`kernels.contact.pose_vertices_kernel` on the model's
+device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from collision.broad_phase import mesh_edges
+from kernels.contact import pose_vertices_kernel
+from sim.rotation import quat_to_matrix
+
+VERTEX_PARTICLE, VERTEX_BODY, VERTEX_STATIC = 0, 1, 2
+
+
+def _np(a, tail: tuple, dtype=np.float64) -> np.ndarray:
+    if a is None:
+        return np.zeros((0, *tail), dtype=dtype)
+    arr = a.numpy() if hasattr(a, "numpy") else np.asarray(a)
+    return np.asarray(arr, dtype=dtype).reshape(-1, *tail)
+
+
+@dataclass
+class CollisionMesh:
+    """Vertices, faces and edges of everything in a model that can collide (see the module
+    docstring for the numbering). Build it with :meth:`from_model`.
+
+    Attributes:
+        particle_count: P, particles (all of the model's).
+        body_count: B, rigid bodies.
+        shape_offset: first rigid surface vertex (= P).
+        static_offset: first static vertex (= P + S).
+        vertex_count: V = P + S + G.
+        faces: (F, 3) int64 vertex indices: cloth triangles, then the bodies' faces, then the
+            static faces.
+        face_offsets: (0, T, T + Fs, F): where the cloth, body and static faces start and end.
+        edges: (E, 2) int64 unique edges of ``faces`` (:func:`collision.broad_phase.mesh_edges`).
+        vertex_type: (V,) int64, ``VERTEX_*``.
+        vertex_owner: (V,) int64: particle index, body index, or 0 for static vertices.
+        local: (V, 3) float64: body-frame positions [m] of rigid vertices, world positions of
+            static ones, zeros for particles.
+        device: the model's Warp device.
+    """
+
+    particle_count: int
+    body_count: int
+    shape_offset: int
+    static_offset: int
+    vertex_count: int
+    faces: np.ndarray
+    face_offsets: tuple
+    edges: np.ndarray
+    vertex_type: np.ndarray
+    vertex_owner: np.ndarray
+    local: np.ndarray
+    device: object
+
+    @classmethod
+    def from_model(cls, model) -> "CollisionMesh":
+        """The collidable surface of a finalised :class:`sim.model.Model` (arrays copied to the
+        host once)."""
+        P, B = int(model.particle_count), int(model.body_count)
+        tris = _np(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
+        shape_vertices = _np(model.shape_vertices, (3,))
+        shape_body = _np(model.shape_vertex_body, (), np.int64)
+        shape_faces = _np(model.shape_faces, (3,), np.int64)
+        static_vertices = _np(model.static_vertices, (3,))
+        static_faces = _np(model.static_faces, (3,), np.int64)
+        S, G = len(shape_vertices), len(static_vertices)
+        faces = np.concatenate([tris, shape_faces + P, static_faces + P + S]).astype(np.int64)
+        T, Fs = len(tris), len(shape_faces)
+        return cls(
+            particle_count=P,
+            body_count=B,
+            shape_offset=P,
+            static_offset=P + S,
+            vertex_count=P + S + G,
+            faces=faces,
+            face_offsets=(0, T, T + Fs, len(faces)),
+            edges=mesh_edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int64),
+            vertex_type=np.concatenate([np.full(P, VERTEX_PARTICLE), np.full(S, VERTEX_BODY),
+                                        np.full(G, VERTEX_STATIC)]).astype(np.int64),
+            vertex_owner=np.concatenate([np.arange(P), shape_body, np.zeros(G)]).astype(np.int64),
+            local=np.concatenate([np.zeros((P, 3)), shape_vertices, static_vertices]).reshape(-1, 3),
+            device=model.device,
+        )
+
+    @property
+    def shape_count(self) -> int:
+        """S: rigid surface vertices."""
+        return self.static_offset - self.shape_offset
+
+    @property
+    def shape_body(self) -> np.ndarray:
+        """(S,) the body of each rigid surface vertex."""
+        return self.vertex_owner[self.shape_offset:self.static_offset]
+
+    @property
+    def shape_local(self) -> np.ndarray:
+        """(S, 3) body-frame positions [m] of the rigid surface vertices."""
+        return self.local[self.shape_offset:self.static_offset]
+
+    @property
+    def static_vertices(self) -> np.ndarray:
+        """(G, 3) world positions [m] of the static vertices."""
+        return self.local[self.static_offset:]
+
+    def positions(self, particle_q: np.ndarray, body_q: np.ndarray) -> np.ndarray:
+        """World positions (V, 3) [m] for particle positions (P, 3) and body poses (B, 7)
+        (centre of mass, quaternion x y z w), on the host.
+
+        Raises:
+            ValueError: naming the argument whose length does not match the model.
+        """
+        particle_q = np.asarray(particle_q, dtype=np.float64).reshape(-1, 3)
+        body_q = np.asarray(body_q, dtype=np.float64).reshape(-1, 7)
+        if len(particle_q) != self.particle_count:
+            raise ValueError(f"particle_q: the state has {len(particle_q)} particles, the model {self.particle_count}")
+        if len(body_q) != self.body_count:
+            raise ValueError(f"body_q: the state has {len(body_q)} bodies, the model {self.body_count}")
+        if self.shape_count:
+            rot = quat_to_matrix(body_q[:, 3:7])[self.shape_body]
+            shape = body_q[self.shape_body, :3] + np.einsum("nij,nj->ni", rot, self.shape_local)
+        else:
+            shape = np.zeros((0, 3))
+        return np.concatenate([particle_q, shape, self.static_vertices])
+
+    def pose(self, particle_q: wp.array, body_q: wp.array, x: wp.array, lever: wp.array) -> None:
+        """World positions ``x`` (V,) and lever arms from the owning body's centre of mass
+        ``lever`` (V,) (zero for particles and static vertices), vec3d arrays on the model's
+        device, by :func:`kernels.contact.pose_vertices_kernel` (differentiable under a tape)."""
+        if not self.vertex_count:
+            return
+        if not hasattr(self, "_type_w"):
+            d = self.device
+            self._type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=d)
+            self._owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=d)
+            self._local_w = wp.array(self.local, dtype=wp.vec3d, device=d)
+        wp.launch(pose_vertices_kernel, dim=self.vertex_count, device=self.device,
+                  inputs=[particle_q, body_q, self._type_w, self._owner_w, self._local_w], outputs=[x, lever])
