@@ -54,6 +54,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from collision.buffers import host, upload
 from collision.roots import init_warp
 from kernels import broad_phase as _k
 
@@ -378,9 +379,7 @@ class BroadPhase:
             self._queries_since_build = 0
         self._queries_since_build += 1
 
-        xa, xb = self._xa, self._xb
-        xa.assign(a)
-        xb.assign(b)
+        xa, xb = upload(self._xa, a), upload(self._xb, b)
 
         n_vf = 0
         if self._vf_plans:
@@ -417,13 +416,16 @@ class BroadPhase:
 
     @staticmethod
     def _fit(bvhs: list | None, plans: list, lo: wp.array, hi: wp.array, rebuild: bool) -> list:
-        """Per-body BVHs over the slices ``lo[s:e]``, ``hi[s:e]`` of the plans: built anew when
-        ``rebuild`` (or none exist yet), else refitted (each tree keeps its slice views, which share
+        """Per-body BVHs over the slices ``lo[s:e]``, ``hi[s:e]`` of the plans: built when none
+        exist yet, rebuilt in place when ``rebuild``, else refitted (each tree keeps its slice views, which share
         memory with ``lo`` / ``hi``, so a refit reads the boxes just written)."""
-        if rebuild or bvhs is None:
+        if bvhs is None:
             return [wp.Bvh(lo[s:e], hi[s:e]) for (_h, s, e, _qs, _qn) in plans]
         for bvh in bvhs:
-            bvh.refit()
+            if rebuild:
+                bvh.rebuild()  # in place: the stepping loop allocates nothing
+            else:
+                bvh.refit()
         return bvhs
 
     def _launch(self, key, kernel, dim: int, args: list) -> None:
@@ -456,7 +458,7 @@ class BroadPhase:
             self._counter.zero_()
             for key, kernel, dim, inputs in launches:
                 self._launch(key, kernel, dim, [*inputs, *tail, buf])
-            total = int(self._counter.numpy()[0])
+            total = int(host(self._counter)[0])
             if total < 0:
                 raise RuntimeError("broad phase: more than 2^31 candidate pairs; reduce inflation")
             if total <= buf.shape[0]:
@@ -470,7 +472,7 @@ def _sorted_pairs(buf: wp.array, count: int) -> np.ndarray:
     primitive and tree on the CPU, any order on a GPU: sorted for a deterministic result)."""
     if count == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    out = buf.numpy()[:count].astype(np.int64)
+    out = host(buf)[:count].astype(np.int64)
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from collision.buffers import host, upload
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 
@@ -102,10 +103,24 @@ class CandidateNarrowPhase:
     :func:`narrow_phase` on the same pairs, in the sorted order of
     :meth:`~collision.broad_phase.BroadPhase.query`.
 
+    A collision response that runs several rounds per step can share one broad-phase query
+    between them: :meth:`cover` queries the swept boxes from the start positions to the
+    predicted end positions, widened by a margin ``m``; a later :meth:`near` (``max_distance <=
+    m`` at the same start positions) or :meth:`ccd` (end positions within ``m / 2``, per
+    coordinate, of the predicted ones) reuses those candidates, which then hold every pair the
+    query of its own would have found (a vertex's swept box grows by at most the distance its
+    end moves, and a pair's two boxes by twice that). Anything else queries afresh (and drops
+    the cover). The hits are the same either way.
+
     Args:
         broad_phase: the :class:`collision.broad_phase.BroadPhase` of the mesh (its ``faces``
             and ``edges`` number the pairs; its device is used).
     """
+
+    COVER_SAFETY = 0.45
+    """An end position may move this fraction of the margin (not the full half) from the covered
+    one: room for the rounding of the boxes' float64 arithmetic (the broad phase pads its
+    float32 boxes for its own rounding only)."""
 
     def __init__(self, broad_phase) -> None:
         init_warp()
@@ -121,6 +136,35 @@ class CandidateNarrowPhase:
         self._source = wp.empty(0, dtype=wp.int32, device=dev)
         self._offset = wp.empty(0, dtype=wp.vec3d, device=dev)
         self._weights = wp.empty(0, dtype=wp.vec4d, device=dev)
+        n = broad_phase.num_vertices
+        self._x0 = wp.empty(n, dtype=wp.vec3d, device=dev)
+        self._x1 = wp.empty(n, dtype=wp.vec3d, device=dev)
+        self._cover = None  # (buffers, x0, x1, margin) of the last cover() while valid
+        self.queries = 0  # broad-phase queries run (for benchmarks)
+        self.reuses = 0  # calls answered from a cover
+
+    def cover(self, x0, x1, margin: float) -> None:
+        """One broad-phase query of the motion ``x0 -> x1`` ((V, 3) float64) widened by
+        ``margin`` [m] (>= 0), kept for the calls that it covers (see the class docstring)."""
+        x0 = np.asarray(x0, dtype=np.float64)
+        x1 = np.asarray(x1, dtype=np.float64)
+        buffers = self.broad_phase.query_device(x0, x1, float(margin))
+        self.queries += 1
+        self._cover = (buffers, x0.copy(), x1.copy(), float(margin))
+
+    def _candidates(self, x0, x1, inflation: float, end_moves: bool):
+        """Candidate buffers and the device positions (start, end) for the motion ``x0 -> x1``
+        and the inflation: from the cover when it holds them, else a fresh query."""
+        c = self._cover
+        if c is not None and inflation <= c[3] and np.array_equal(x0, c[1]) and (
+                not end_moves or np.max(np.abs(x1 - c[2]), initial=0.0) <= self.COVER_SAFETY * c[3]):
+            self.reuses += 1
+            return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
+        self._cover = None  # the fresh query overwrites the broad phase's buffers
+        self.queries += 1
+        buffers = self.broad_phase.query_device(x0, x1, inflation)
+        xa, xb = self.broad_phase.positions
+        return buffers, xa, xb
 
     def _reserve(self, n: int) -> None:
         if self._pairs.shape[0] < n:
@@ -141,15 +185,15 @@ class CandidateNarrowPhase:
         self._counter.zero_()
         counts = []
         for kind, pairs, n in ((0, vf, n_vf), (1, ee, n_ee)):
-            before = int(self._counter.numpy()[0]) if kind else 0
+            before = int(host(self._counter)[0]) if kind else 0
             if n:
                 launch(kind, pairs, n)
-            counts.append(int(self._counter.numpy()[0]) - before)
+            counts.append(int(host(self._counter)[0]) - before)
         total = counts[0] + counts[1]
         if total == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
         kind = np.repeat(np.array([0, 1], dtype=np.int64), counts)
-        pair = self._pairs.numpy()[:total].astype(np.int64)
+        pair = host(self._pairs)[:total].astype(np.int64)
         order = np.lexsort((pair[:, 1], pair[:, 0], kind))
         return kind[order], pair[order], order
 
@@ -164,8 +208,7 @@ class CandidateNarrowPhase:
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
-        buffers = self.broad_phase.query_device(x0, x1, 0.0)
-        xa, xb = self.broad_phase.positions
+        buffers, xa, xb = self._candidates(x0, x1, 0.0, end_moves=True)
 
         def launch(kind, pairs, n):
             wp.launch(_k.pair_ccd_kernel, dim=n, device=self.device,
@@ -174,7 +217,7 @@ class CandidateNarrowPhase:
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
-        return kind, pair, self._time.numpy()[:n][order], self._source.numpy()[:n][order].astype(np.int64)
+        return kind, pair, host(self._time)[:n][order], host(self._source)[:n][order].astype(np.int64)
 
     def near(self, x, max_distance: float):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
@@ -186,8 +229,7 @@ class CandidateNarrowPhase:
         """
         from kernels.contact import pair_proximity_kernel
 
-        buffers = self.broad_phase.query_device(x, x, float(max_distance))
-        xa, _ = self.broad_phase.positions
+        buffers, xa, _ = self._candidates(x, x, float(max_distance), end_moves=False)
 
         def launch(kind, pairs, n):
             wp.launch(pair_proximity_kernel, dim=n, device=self.device,
@@ -196,7 +238,7 @@ class CandidateNarrowPhase:
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
-        return kind, pair, self._offset.numpy()[:n][order], self._weights.numpy()[:n][order]
+        return kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order]
 
 
 def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0):

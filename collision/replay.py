@@ -14,7 +14,9 @@ the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differen
   tape holds the implicit adjoint of that solve (a solve with the transposed matrix), never
   iterations; Coulomb friction per contact follows (stick or slide decided in the kernel), and
   the normal impulses are solved again on top of it;
-* time-of-impact integration ``x0 + t* v- + (h - t*) v+`` per particle and body.
+* time-of-impact integration ``x0 + t* v- + (h - t*) v+`` per particle and body;
+* the fail-safe's impact zones (membership decided on the host) as their momentum-conserving
+  rigid motion (:meth:`ContactReplay.zone_velocities`).
 
 Arrays are never written after a launch read them (fresh outputs per call), so the tape can be
 replayed backwards. Without an active tape nothing is recorded and the same launches give the
@@ -299,19 +301,57 @@ class ContactReplay:
             tape.record_func(backward, [matrix, rhs, solution])
         return solution
 
-    def select_zone_velocities(self, vp, vb, particle_in_zone, body_in_zone, zone_vp, zone_vb):
-        """Velocities where impact-zone members (host masks) take the zone's rigid motion (host
-        arrays, no derivative) and everything else keeps its taped velocity."""
+    def zone_velocities(self, vp, vb, particle_zone, body_zone, n_zones: int, particle_q, body_q, body_mass,
+                        body_inertia):
+        """Velocities after the impact zones' rigid motion (fresh arrays; the inputs when no
+        particle / body is in a zone), recorded on the active tape.
+
+        The zones are decisions (host ints per particle / body: -1 none, -2 a zone touching the
+        world, at rest; ``0..n_zones-1`` a free zone); the motion is a smooth function of the
+        start positions ``particle_q`` / ``body_q``, the velocities ``vp`` / ``vb``, the inverse
+        masses and the body masses and inertias: each zone's total mass, linear momentum and, about
+        its centre of mass, angular momentum and inertia tensor are summed
+        (:func:`kernels.contact.zone_sums_kernel`, :func:`kernels.contact.zone_moments_kernel`),
+        ``linear = momentum / mass`` and ``omega = pinv(inertia) angular momentum``
+        (:func:`kernels.contact.zone_rigid_motion_kernel`, the pseudo-inverse for zones of
+        collinear particles), and each member moves with ``linear + omega x r`` (bodies: that at
+        the centre of mass, and ``omega``). Momentum and angular momentum of each zone are kept.
+        """
+        p_count = vp.shape[0] if vp is not None else 0
+        b_count = vb.shape[0] if vb is not None else 0
+        particle_zone = np.asarray(particle_zone)[:p_count]
+        body_zone = np.asarray(body_zone)[:b_count]
+        in_p = p_count and bool(np.any(particle_zone != -1))
+        in_b = b_count and bool(np.any(body_zone != -1))
+        if not (in_p or in_b):
+            return vp, vb
+        pz, bz = self._ints(particle_zone), self._ints(body_zone)
+        xp = self._or(particle_q, self._empty_vec)
+        vp_in = self._or(vp, self._empty_vec)
+        bq = self._or(body_q, self._empty_pose)
+        vb_in = self._or(vb, self._empty_twist)
+        b_mass = self._or(body_mass, self.body_inv_mass)  # any float64 array when there is no body
+        b_inertia = self._or(body_inertia, wp.zeros(1, dtype=wp.mat33d, device=self.device))
+        nz = max(int(n_zones), 1)
+        centre, linear, omega = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
+        if n_zones:
+            mass, first, momentum = self._zeros(nz, wp.float64), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
+            angular, inertia = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.mat33d)
+            members = [p_count, pz, bz, xp, vp_in, self.particle_inv_mass, bq, vb_in, b_mass]
+            wp.launch(K.zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
+                      device=self.device)
+            wp.launch(K.zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
+                      outputs=[angular, inertia], device=self.device)
+            wp.launch(K.zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
+                      outputs=[centre, linear, omega], device=self.device)
         out_p, out_b = vp, vb
-        if vp is not None and vp.shape[0] and np.any(particle_in_zone):
-            out_p = self._zeros(vp.shape[0], wp.vec3d)
-            wp.launch(K.select_particle_velocity_kernel, dim=vp.shape[0],
-                      inputs=[self._ints(particle_in_zone), self._floats(zone_vp, wp.vec3d), vp],
+        if in_p:
+            out_p = self._zeros(p_count, wp.vec3d)
+            wp.launch(K.zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
                       outputs=[out_p], device=self.device)
-        if vb is not None and vb.shape[0] and np.any(body_in_zone):
-            out_b = self._zeros(vb.shape[0], wp.spatial_vectord)
-            wp.launch(K.select_body_velocity_kernel, dim=vb.shape[0],
-                      inputs=[self._ints(body_in_zone), self._floats(zone_vb, wp.spatial_vectord), vb],
+        if in_b:
+            out_b = self._zeros(b_count, wp.spatial_vectord)
+            wp.launch(K.zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
                       outputs=[out_b], device=self.device)
         return out_p, out_b
 

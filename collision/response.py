@@ -36,9 +36,14 @@ model's components decide which groups exist and which may touch (cloth with its
    can collide, and the start of a substep is collision free: this terminates without
    interpenetration.
 
-The response runs in numpy on the host around the Warp broad and narrow phases (its cost is
-measured per scene in ``benchmarks/sim.py``). The derivative of the trajectory through ``t*`` is
-taped for particle-plane contacts (:mod:`kernels.integrate`); this mesh response is not taped.
+Two forms share the detection: the default one above (its decisions and its projected
+Gauss-Seidel impulses in numpy and Warp kernels around the Warp broad and narrow phases, which
+read the candidate pairs where the broad phase left them; it reuses its buffers, so stepping
+allocates no Warp array, and its cost is measured per scene in ``benchmarks/sim.py``), and with
+``differentiable=True`` the replayed one (design.md "Differentiating collision response:
+decide, then replay"): decisions off the tape, then ``t*`` through the mollified roots, the
+exact impulse solve, the time-of-impact integration and the impact zones' rigid motion as taped
+Warp launches (:mod:`collision.replay`).
 """
 
 from __future__ import annotations
@@ -50,6 +55,7 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
+from collision.buffers import Staging, host, upload
 from collision.ccd import CandidateNarrowPhase
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
@@ -89,6 +95,12 @@ velocity that is exactly separating or tangential stays far inside)."""
 END_OF_SUBSTEP = 1e-9
 """A CCD hit this close (relative) to the end of the substep lies on the end of the planned path;
 its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
+
+COVER_MARGIN = 4.0
+"""Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
+and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
+predicted ones reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`); a round that
+moves further queries afresh."""
 
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
@@ -187,8 +199,9 @@ class ImpulseCollisionHandler:
         last_normals: (C, 3) their unit normals.
         last_times: (C,) their times of impact from the start of the substep [s].
         failsafe_count: substeps (over the handler's life) in which the fail-safe froze something.
-        untaped_substeps: substeps (``differentiable=True``) in which impact zones formed: their
-            members' velocities carry no derivative through that substep.
+        untaped_substeps: substeps (``differentiable=True``) whose response carries no
+            derivative; always 0 since the impact zones' motion is taped (kept for
+            compatibility).
         active_set_repairs: exact solves redone because the active set changed.
         unsettled_active_sets: solves whose active set still changed after
             :data:`ACTIVE_SET_ITERATIONS` repairs (the last trial's set is used).
@@ -234,6 +247,8 @@ class ImpulseCollisionHandler:
         self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=model.device)
         self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=model.device)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
+        self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
+        self._out = model.state()
         self.last_sweeps = 0
         self.broad_phase = None
         if self.n_vertices and len(self.faces):
@@ -257,6 +272,8 @@ class ImpulseCollisionHandler:
             self.body_inv_inertia = m.body_inv_inertia.numpy().reshape(-1, 3, 3)
             self._body_mass = m.body_mass.numpy()
             self._body_inertia = m.body_inertia.numpy().reshape(-1, 3, 3)
+        self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
+        self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
         self.separation = float(m.thickness)
         if self.separation <= 0.0 and self.n_vertices:
             x = self._vertices(m.particle_q.numpy()[: self.n_particles] if self.n_particles else np.zeros((0, 3)),
@@ -307,14 +324,13 @@ class ImpulseCollisionHandler:
         vertex-face, 1 edge-edge, 2 vertex-plane) at positions ``y`` (C, 4, 3): side A positive
         (sum 1), side B negative (sum -1); :func:`kernels.contact.pair_weights`, the definition
         the replay and the narrow phase use."""
-        dev = self.model.device
-        out = wp.empty(len(y), dtype=wp.vec4d, device=dev)
-        if len(y):
-            wp.launch(pair_weights_kernel, dim=len(y), device=dev,
-                      inputs=[wp.array(kind.astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(np.ascontiguousarray(y).reshape(-1, 3), dtype=wp.vec3d, device=dev)],
-                      outputs=[out])
-        return out.numpy().reshape(-1, 4)
+        if not len(y):
+            return np.zeros((0, 4))
+        put = self._staging.put
+        out = self._staging.empty("weights", len(y), wp.vec4d)
+        wp.launch(pair_weights_kernel, dim=len(y), device=self.model.device,
+                  inputs=[put("kind", kind, wp.int32), put("y", np.reshape(y, (-1, 3)), wp.vec3d)], outputs=[out])
+        return host(out)[: len(y)].copy()
 
     def _plane_proximity(self, x0: np.ndarray, delta: float):
         """Rigid vertices closer than ``delta`` to (or behind) a plane at the start: (kind 2,
@@ -420,50 +436,42 @@ class ImpulseCollisionHandler:
     def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
         updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
-        impulses of ``cs``."""
+        impulses of ``cs``. Its arrays are the handler's reused buffers (no allocation)."""
         if len(cs) == 0:
             return
-        dev = self.model.device
-
-        def arr(a, dtype, fill_shape):
-            a = np.ascontiguousarray(a)
-            if len(a) == 0:  # the kernel never reads these, but Warp needs an array
-                a = np.zeros(fill_shape)
-            return wp.array(a, dtype=dtype, device=dev)
-
-        inv_mp = self.particle_inv_mass
-        inv_mb = self.body_inv_mass if len(bv) else np.zeros(0)
-        inv_ib = inv_inertia_w if len(bv) else np.zeros((0, 3, 3))
-        vp_w = arr(vp, wp.vec3d, (1, 3))
-        lin_w = arr(bv[:, 3:6], wp.vec3d, (1, 3))
-        ang_w = arr(bv[:, 0:3], wp.vec3d, (1, 3))
-        jn = wp.array(cs.jn, dtype=wp.float64, device=dev)
-        jt = wp.array(cs.jt, dtype=wp.vec3d, device=dev)
-        sweeps = wp.zeros(1, dtype=wp.int32, device=dev)
+        put = self._staging.put
+        vp_w = put("vp", vp, wp.vec3d)
+        lin_w = put("lin", bv[:, 3:6], wp.vec3d)
+        ang_w = put("ang", bv[:, 0:3], wp.vec3d)
+        jn = put("jn", cs.jn, wp.float64)
+        jt = put("jt", cs.jt, wp.vec3d)
+        sweeps = self._staging.empty("sweeps", 1, wp.int32)
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
         wp.launch(
             solve_contacts_kernel, dim=1,
             inputs=[
-                wp.array(cs.idx.astype(np.int32), dtype=wp.vec4i, device=dev),
-                wp.array(cs.w, dtype=wp.vec4d, device=dev),
-                wp.array(cs.n, dtype=wp.vec3d, device=dev),
-                wp.array(cs.target, dtype=wp.float64, device=dev),
-                wp.array(cs.edge_edge.astype(np.int32), dtype=wp.int32, device=dev),
+                len(cs),
+                put("idx", cs.idx, wp.vec4i),
+                put("w", cs.w, wp.vec4d),
+                put("n", cs.n, wp.vec3d),
+                put("target", cs.target, wp.float64),
+                put("edge_edge", cs.edge_edge, wp.int32),
                 self._vertex_type_w, self._vertex_owner_w,
-                arr(r0, wp.vec3d, (1, 3)), int(self.shape_offset),
-                arr(inv_mp, wp.float64, (1,)), arr(inv_mb, wp.float64, (1,)), arr(inv_ib, wp.mat33d, (1, 3, 3)),
+                put("r0", r0, wp.vec3d), int(self.shape_offset),
+                self._particle_inv_mass_w, self._body_inv_mass_w, put("inv_ib", inv_inertia_w, wp.mat33d),
                 wp.float64(self.model.friction), int(SOLVER_ITERATIONS), wp.float64(tol),
             ],
             outputs=[vp_w, lin_w, ang_w, jn, jt, sweeps],
-            device=dev,
+            device=self.model.device,
         )
-        if len(vp):
-            vp[:] = vp_w.numpy()
-        if len(bv):
-            bv[:, 3:6] = lin_w.numpy()
-            bv[:, 0:3] = ang_w.numpy()
-        cs.jn, cs.jt = jn.numpy(), jt.numpy()
-        self.last_sweeps = int(sweeps.numpy()[0])
+        P, B, C = len(vp), len(bv), len(cs)
+        if P:
+            vp[:] = host(vp_w)[:P]
+        if B:
+            bv[:, 3:6] = host(lin_w)[:B]
+            bv[:, 0:3] = host(ang_w)[:B]
+        cs.jn, cs.jt = host(jn)[:C].copy(), host(jt)[:C].copy()
+        self.last_sweeps = int(host(sweeps)[0])
 
     def _body_inertia_w(self, body_q):
         """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
@@ -561,6 +569,9 @@ class ImpulseCollisionHandler:
             t_b[zb] = 0.0
             return x1p, bq1, t_p, t_b
 
+        # one broad-phase query for the proximity pass and the CCD rounds while their motion
+        # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
+        self._narrow.cover(x0[:-1], self._vertices(x1p_pred, bq1_pred)[:-1], COVER_MARGIN * delta)
         # 1. proximity contacts at the start of the substep
         kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
         if len(kind):
@@ -657,20 +668,29 @@ class ImpulseCollisionHandler:
             self.last_times = cs.toi[active]
         if len(cs) == 0 and not failsafe:
             return None
-        d = self.model.device
-        out = State(
-            particle_q=_replace_head(state_pred.particle_q, x1p, wp.vec3d, d),
-            particle_qd=_replace_head(state_pred.particle_qd, vp, wp.vec3d, d),
-            body_q=wp.array(bq1, dtype=wp.transformd, device=d) if B else state_pred.body_q,
-            body_qd=wp.array(bv, dtype=wp.spatial_vectord, device=d) if B else state_pred.body_qd,
+        # the result in the handler's own State (reused: the integrator copies it out)
+        out = self._out
+        if P:
+            upload(out.particle_q, x1p)
+            upload(out.particle_qd, vp)
+        if B:
+            upload(out.body_q, bq1)
+            upload(out.body_qd, bv)
+        return State(
+            particle_q=out.particle_q if P else state_pred.particle_q,
+            particle_qd=out.particle_qd if P else state_pred.particle_qd,
+            body_q=out.body_q if B else state_pred.body_q,
+            body_qd=out.body_qd if B else state_pred.body_qd,
         )
-        return out
 
     def _call_replayed(self, state_in: State, state_pred: State, h: float) -> State | None:
         """The response as decisions on the host and a taped replay on the device
         (:class:`collision.replay.ContactReplay`): the result is the replay's, exact for the
         decided contact set (impulses from the active set's equations, not Gauss-Seidel sweeps),
-        and differentiable when a ``wp.Tape`` is recording."""
+        and differentiable when a ``wp.Tape`` is recording. The fail-safe's impact zones are
+        taped too: their membership is decided here, their momentum-conserving rigid motion is
+        replayed (:meth:`collision.replay.ContactReplay.zone_velocities`), so every substep is
+        taped and ``untaped_substeps`` stays 0."""
         R = self._replay
         P, B = self.n_particles, self.n_bodies
         m = self.model
@@ -682,8 +702,6 @@ class ImpulseCollisionHandler:
         X0, L0 = R.pose(xq0, bq0_w)
         inv_I = R.world_inverse_inertia(bq0_w)
         x0 = X0.numpy()
-        x0p = state_in.particle_q.numpy()[:P] if P else np.zeros((0, 3))
-        bq0 = state_in.body_q.numpy() if B else np.zeros((0, 7))
         vp_minus = vm_p.numpy() if P else np.zeros((0, 3))
         bv_minus = vm_b.numpy() if B else np.zeros((0, 6))
         vp, bv = vp_minus.copy(), bv_minus.copy()
@@ -694,7 +712,7 @@ class ImpulseCollisionHandler:
         self._sep_speed = delta / h
         mu = float(m.friction)
         cs = _Contacts()
-        st = {"dev": None, "vp": vm_p, "vb": vm_b, "zone": False}
+        st = {"dev": None, "vp": vm_p, "vb": vm_b}
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
         def owners():
             t_p, t_b = self._owner_times(cs, P, B)
@@ -790,6 +808,10 @@ class ImpulseCollisionHandler:
         # 1. proximity contacts at the start of the substep
         kinds, pairs, idxs = [], [], []
         with paused_tape():  # decisions: off the tape
+            # one broad-phase query while the rounds' motion stays near the predicted one
+            x1_pred = self._vertices(state_pred.particle_q.numpy() if P else np.zeros((0, 3)),
+                                     state_pred.body_q.numpy() if B else np.zeros((0, 7)))
+            self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta)
             kind, pair, off, _ = self._narrow.near(x0[:nv], delta * (1.0 + 1e-9))  # slack: exact test below
         near = np.linalg.norm(off, axis=1) < delta
         kinds.append(kind[near])
@@ -829,21 +851,22 @@ class ImpulseCollisionHandler:
                 failsafe = True
                 if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
                     break
-                zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
-                                       self._body_mass, self._body_inertia_w(bq0))
-                # the zones' rigid motion is computed on the host: no derivative flows through
-                # the zone members' velocities (the others keep theirs)
-                st["vp"], st["vb"] = R.select_zone_velocities(st["vp"], st["vb"], zones.particles, zones.bodies,
-                                                              vp, bv)
-                st["zone"] = True
+                # the zones' momentum-conserving rigid motion, on the tape (membership decided
+                # above); the host copies follow for the next round's decisions
+                particle_zone, body_zone, n_zones = zones.labels()
+                st["vp"], st["vb"] = R.zone_velocities(st["vp"], st["vb"], particle_zone, body_zone, n_zones, xq0,
+                                                       bq0_w, m.body_mass if B else None,
+                                                       m.body_inertia if B else None)
+                if P:
+                    vp[:] = st["vp"].numpy()
+                if B:
+                    bv[:] = st["vb"].numpy()
                 continue
             self.ccd_events += int(approaching.sum())
             add(approaching, out, host, kind, pair, idx, source)
             exact()
         if failsafe:
             self.failsafe_count += 1
-        if st["zone"]:
-            self.untaped_substeps += 1
         if len(cs) == 0 and not failsafe:
             return None
         X1p, BQ1, _, _ = plan()
@@ -950,8 +973,26 @@ class _ImpactZones:
                 self.bodies[node - self.P] = True
         return bool(grew)
 
+    def labels(self):
+        """The zones as ints for the taped replay (:meth:`collision.replay.ContactReplay.zone_velocities`):
+        per particle and per body -1 (in no zone), -2 (in the zone touching the world: at rest)
+        or the index of its free zone; and the number of free zones."""
+        particle_zone = np.full(self.P, -1, dtype=np.int64)
+        body_zone = np.full(self.B, -1, dtype=np.int64)
+        members_p = np.flatnonzero(self.particles)
+        members_b = np.flatnonzero(self.bodies)
+        roots = np.array([self._find(int(i)) for i in members_p] + [self._find(int(self.P + i)) for i in members_b],
+                         dtype=np.int64)
+        free = np.unique(roots[roots != self.world])
+        index = np.where(roots == self.world, -2, np.searchsorted(free, roots))
+        particle_zone[members_p] = index[: len(members_p)]
+        body_zone[members_b] = index[len(members_p):]
+        return particle_zone, body_zone, len(free)
+
     def rigid_velocities(self, x0p, vp, bq0, bv, particle_inv_mass, body_mass, body_inertia_w) -> None:
-        """Overwrites the velocities of zone members with their zone's rigid motion (in place)."""
+        """Overwrites the velocities of zone members with their zone's rigid motion (in place;
+        the Gauss-Seidel response's fail-safe, not taped; the replayed response records the
+        same motion on the tape with :meth:`collision.replay.ContactReplay.zone_velocities`)."""
         members_p = np.flatnonzero(self.particles)
         members_b = np.flatnonzero(self.bodies)
         roots_p = np.array([self._find(int(i)) for i in members_p], dtype=np.int64)
@@ -981,12 +1022,3 @@ class _ImpactZones:
             vp[zp] = linear + np.cross(omega, rp)
             bv[zb, 3:6] = linear + np.cross(omega, rb)
             bv[zb, :3] = omega
-
-
-def _replace_head(full: wp.array, head: np.ndarray, dtype, device) -> wp.array:
-    """A fresh array equal to ``full`` with its first ``len(head)`` rows replaced."""
-    if full.shape[0] == 0:
-        return full
-    arr = full.numpy().copy()
-    arr[: len(head)] = head
-    return wp.array(arr, dtype=dtype, device=device)

@@ -87,6 +87,7 @@ class SemiImplicitIntegrator:
             # no external body wrenches yet: a constant zero array (never written)
             self._body_f = wp.zeros(model.body_count, dtype=wp.spatial_vectord, device=self.device)
         self._scratch: list[State] = []
+        self._stages: dict[str, State] = {}
         self._scratch_forces = None
         self._scratch_plane_index = None
 
@@ -104,6 +105,20 @@ class SemiImplicitIntegrator:
         while len(self._scratch) <= k:
             self._scratch.append(self._new_state(False))
         return self._scratch[k]
+
+    def _stage_state(self, name: str, requires_grad: bool, bodies: State | None = None) -> State:
+        """A State for an intermediate stage of a substep: fresh under a tape (the tape needs
+        every stage's arrays), else one kept per ``name`` and reused (no allocation per
+        substep). ``bodies``: take the body arrays from this State instead."""
+        if requires_grad:
+            s = self._new_state(True)
+        else:
+            s = self._stages.get(name)
+            if s is None:
+                s = self._stages[name] = self._new_state(False)
+        if bodies is not None:
+            s = State(particle_q=s.particle_q, particle_qd=s.particle_qd, body_q=bodies.body_q, body_qd=bodies.body_qd)
+        return s
 
     def _forces(self, requires_grad: bool):
         m = self.model
@@ -158,14 +173,9 @@ class SemiImplicitIntegrator:
         if handler is None and not planes:
             pred = s_out
         elif handler is None:  # planes only touch particles: bodies go straight to s_out
-            pred = State(
-                particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-                particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-                body_q=s_out.body_q,
-                body_qd=s_out.body_qd,
-            )
+            pred = self._stage_state("pred", requires_grad, bodies=s_out)
         else:
-            pred = self._new_state(requires_grad)
+            pred = self._stage_state("pred", requires_grad)
 
         hd = wp.float64(h)
         if m.particle_count > 0:
@@ -195,12 +205,7 @@ class SemiImplicitIntegrator:
             if handler is None:
                 out = s_out
             else:
-                out = State(
-                    particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-                    particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-                    body_q=pred.body_q,
-                    body_qd=pred.body_qd,
-                )
+                out = self._stage_state("planes", requires_grad, bodies=pred)
             self.collide_planes(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q, out.particle_qd, h,
                                requires_grad)
             cur = out

@@ -65,8 +65,9 @@ class RolloutResult:
             ``refined_substeps`` and ``contact_constrained`` (the implicit integrator's halved
             substeps and particles held in its constrained re-solves),
             ``ccd_events`` (approaching CCD hits that became contacts, over all rounds and substeps),
-            ``failsafe_substeps`` (impact zones formed), ``untaped_substeps`` (substeps whose
-            impact-zone members' velocities carry no derivative), ``largest_system`` (most unknowns
+            ``failsafe_substeps`` (impact zones formed; their rigid motion is taped),
+            ``untaped_substeps`` (substeps whose response carries no derivative: always 0,
+            kept for compatibility), ``largest_system`` (most unknowns
             of one impulse solve), ``unsettled_active_sets`` (impulse solves whose active set did
             not settle within the repair budget).
     """
@@ -463,9 +464,8 @@ def rollout(
     rollout does with it: spring forces, the integration (semi-implicit, or the implicit
     integrator's solve through its implicit adjoint), the particle-plane contacts and the
     replayed impulse solve (whose matrix holds the inverse masses). With ``checkpoint_every``
-    the parameters' gradients are summed over the recomputed segments. Particles inside an
-    impact zone (``stats["untaped_substeps"]``) carry no derivative through that substep, for
-    these parameters as for the velocities; pinned particles get a zero mass gradient.
+    the parameters' gradients are summed over the recomputed segments (impact zones' rigid
+    motion included: it is taped); pinned particles get a zero mass gradient.
 
     Returns:
         :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd``,

@@ -430,3 +430,39 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     np.testing.assert_allclose(np.where(split, weights, 0).sum(1), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.where(split, 0, weights).sum(1), -1.0, atol=1e-12)
     np.testing.assert_allclose(np.einsum("ck,ckd->cd", weights, x0[idx]), off, atol=1e-12)
+
+
+def test_candidate_cover_answers_covered_calls_and_requeries_the_rest():
+    """One cover query serves the proximity test at the start positions and CCD of end positions
+    within 0.45 margin of the covered ones, with the hits of fresh queries; an end moved further
+    queries afresh (and still gives the same hits as mesh_ccd)."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    x0, x1, faces = _crumpled_sheets(3)
+    edges = mesh_edges(faces)
+    narrow = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    fresh = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    margin = 0.004
+    narrow.cover(x0, x1, margin)
+    rng = np.random.default_rng(7)
+    for k, move in enumerate((0.0, 0.2 * margin, 0.44 * margin, 3.0 * margin)):
+        x1k = x1 + rng.uniform(-move, move, size=x1.shape)
+        before = narrow.reuses
+        got = narrow.ccd(x0, x1k)
+        assert narrow.reuses == before + (1 if move < 0.45 * margin else 0)
+        want = fresh.ccd(x0, x1k)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        ref = mesh_ccd(x0, x1k, faces, edges)
+        assert len(got[0]) == int(ref.vf_hit.sum() + ref.ee_hit.sum())
+        if k == 0:  # still covered: the proximity test too
+            before = narrow.reuses
+            near = narrow.near(x0, margin)
+            assert narrow.reuses == before + 1
+            for g, w in zip(near, fresh.near(x0, margin)):
+                np.testing.assert_array_equal(g, w)
+    # the last call re-queried: the cover is gone, a wider proximity test queries too
+    before = narrow.queries
+    narrow.near(x0, margin)
+    assert narrow.queries == before + 1

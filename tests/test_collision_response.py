@@ -103,3 +103,46 @@ def test_rigid_box_rests_on_ground_plane(differentiable):
     assert abs(s.body_q.numpy()[0, 2] - 0.1) < 2e-3  # resting on a face (half extent 0.1 m)
     # Gauss-Seidel leaves a resting jitter (measured 0.1 rad/s); the exact replayed solve does not
     assert np.abs(s.body_qd.numpy()[0]).max() < (0.02 if differentiable else 0.2)
+
+
+@pytest.mark.parametrize("scene", ["cloth_on_box", "boxes_on_plane"])
+def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene):
+    """After warm-up, explicit steps with the Gauss-Seidel collision handler (proximity, CCD
+    rounds, impulses) create no Warp array: the handler, the broad and narrow phases and the
+    integrator reuse their buffers (counted by wrapping warp's array constructor)."""
+    from warp._src.types import array as warp_array
+
+    b = ModelBuilder()
+    verts, tris = box_mesh(0.2)
+    if scene == "cloth_on_box":
+        b.add_cloth_grid((-0.3, -0.3, 0.25), None, 6, 6, 0.1, 0.1, density=0.2, stretch_stiffness=20.0,
+                         shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01)
+        b.add_static_mesh(verts, tris)
+    else:
+        b.add_rigid_body(verts, tris, density=200.0, pos=(0.0, 0.0, 0.3), rot=tuple(np.array([0.1, 0.05, 0.0, 0.99]) / np.linalg.norm([0.1, 0.05, 0.0, 0.99])))
+        b.add_rigid_body(verts, tris, density=200.0, pos=(0.05, 0.0, 0.8))
+        b.add_ground_plane()
+    model = b.finalize()
+    integ = SemiImplicitIntegrator(model)
+    handler = ImpulseCollisionHandler(model)
+    integ.collision_handler = handler
+    s0, s1 = model.state(), model.state()
+    for _ in range(40):
+        integ.step(s0, s1, 1 / 60, 8)
+        s0, s1 = s1, s0
+    assert len(handler.last_times) or handler._narrow.reuses  # contacts are being handled
+    count = [0]
+    original = warp_array.__init__
+
+    def counting(self, *args, **kwargs):
+        count[0] += 1
+        original(self, *args, **kwargs)
+
+    warp_array.__init__ = counting
+    try:
+        for _ in range(10):
+            integ.step(s0, s1, 1 / 60, 8)
+            s0, s1 = s1, s0
+    finally:
+        warp_array.__init__ = original
+    assert count[0] == 0

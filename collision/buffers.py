@@ -1,0 +1,64 @@
+"""Reusable Warp arrays filled from host (numpy) data, so that a stepping loop allocates nothing
+per substep.
+
+On the CPU a Warp array and its ``numpy()`` view share memory: :func:`upload` writes the view in
+place (no temporary Warp array, no copy launch). On other devices it copies through
+``wp.array.assign`` (a host staging copy is unavoidable there).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+def host(arr: wp.array) -> np.ndarray:
+    """The host values of ``arr``: on the CPU its numpy view, made once and kept on the array
+    (``numpy()`` costs microseconds per call, and a substep reads the same buffers many
+    times); elsewhere a fresh copy."""
+    if not arr.device.is_cpu:
+        return arr.numpy()
+    view = getattr(arr, "_host_view", None)
+    if view is None:
+        view = arr._host_view = arr.numpy()
+    return view
+
+
+def upload(dst: wp.array, src: np.ndarray) -> wp.array:
+    """Writes host data ``src`` into the first ``len(src)`` rows of ``dst`` (same dtype layout,
+    e.g. (n, 3) float64 into a vec3d array) and returns ``dst``."""
+    n = len(src)
+    if n == 0:
+        return dst
+    if dst.device.is_cpu:
+        view = host(dst)
+        view[:n] = np.asarray(src).reshape((n,) + view.shape[1:])
+    elif n == dst.shape[0]:
+        dst.assign(np.ascontiguousarray(src))
+    else:
+        wp.copy(dst, wp.array(np.ascontiguousarray(src), dtype=dst.dtype, device="cpu"), count=n)
+    return dst
+
+
+class Staging:
+    """Named Warp arrays that grow to the largest size asked for and are then reused.
+
+    ``put(name, data, dtype)`` returns an array of at least ``max(len(data), 1)`` rows whose first
+    ``len(data)`` rows hold ``data`` (the rest is stale: pass the count to the kernel).
+    ``empty(name, rows, dtype)`` returns one without filling it.
+    """
+
+    def __init__(self, device) -> None:
+        self.device = wp.get_device(device)
+        self._arrays: dict[str, wp.array] = {}
+
+    def empty(self, name: str, rows: int, dtype) -> wp.array:
+        a = self._arrays.get(name)
+        if a is None or a.shape[0] < max(rows, 1) or a.dtype != dtype:
+            size = max(rows, 2 * (a.shape[0] if a is not None else 0), 16)
+            a = wp.zeros(size, dtype=dtype, device=self.device)
+            self._arrays[name] = a
+        return a
+
+    def put(self, name: str, data: np.ndarray, dtype) -> wp.array:
+        return upload(self.empty(name, len(data), dtype), data)
