@@ -54,7 +54,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import host, upload
+from collision.buffers import RecordedLaunches, host, upload
 from collision.roots import init_warp
 from kernels import broad_phase as _k
 
@@ -313,7 +313,7 @@ class BroadPhase:
         self._xa = wp.empty(nv, dtype=wp.vec3d, device=dev)  # positions, copied in by every query
         self._xb = wp.empty(nv, dtype=wp.vec3d, device=dev)
         self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._cmds: dict = {}  # recorded launches, see _launch
+        self._launches = RecordedLaunches(dev)  # replayed launches: no per-query argument packing
         # output buffers grow on overflow and are kept for the next query
         self._vf_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * nv + 64, dtype=wp.vec2i, device=dev)
         self._ee_buf = wp.empty(_INITIAL_PAIRS_PER_PRIMITIVE * ne + 64, dtype=wp.vec2i, device=dev)
@@ -383,8 +383,8 @@ class BroadPhase:
 
         n_vf = 0
         if self._vf_plans:
-            self._launch("v_box", _k.vertex_boxes_kernel, nv, [xa, xb, infl, self._v_lo, self._v_hi])
-            self._launch("f_box", _k.face_boxes_kernel, nf, [xa, xb, self._faces, self._f_lo, self._f_hi])
+            self._launches.launch("v_box", _k.vertex_boxes_kernel, nv, [xa, xb, infl, self._v_lo, self._v_hi])
+            self._launches.launch("f_box", _k.face_boxes_kernel, nf, [xa, xb, self._faces, self._f_lo, self._f_hi])
             self._face_bvhs = self._fit(self._face_bvhs, self._vf_plans, self._f_lo, self._f_hi, rebuild)
             shared = [self._vertex_order, self._v_lo, self._v_hi, self._vertex_body, self._faces, self._face_index]
             launches = [
@@ -397,7 +397,7 @@ class BroadPhase:
         n_ee = 0
         if self._ee_plans:
             outputs = [self._e_lo, self._e_hi, self._eq_lo, self._eq_hi]
-            self._launch("e_box", _k.edge_boxes_kernel, ne, [xa, xb, self._edges, infl, *outputs])
+            self._launches.launch("e_box", _k.edge_boxes_kernel, ne, [xa, xb, self._edges, infl, *outputs])
             self._edge_bvhs = self._fit(self._edge_bvhs, self._ee_plans, self._e_lo, self._e_hi, rebuild)
             shared = [self._eq_lo, self._eq_hi, self._edges, self._edge_index, self._edge_body]
             launches = [
@@ -428,24 +428,6 @@ class BroadPhase:
                 bvh.refit()
         return bvhs
 
-    def _launch(self, key, kernel, dim: int, args: list) -> None:
-        """``wp.launch(kernel, dim, inputs=args)`` through a command recorded on the first call
-        with this ``key`` (``dim`` is fixed per key). Replaying it skips Warp's per-launch argument
-        packing (tens of microseconds, more than most of these kernels take); only the arguments
-        that changed since the last launch (another array object, another scalar value) are set.
-        """
-        entry = self._cmds.get(key)
-        if entry is None:
-            cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
-            self._cmds[key] = (cmd, list(args))
-        else:
-            cmd, last = entry
-            for i, (new, old) in enumerate(zip(args, last)):
-                if new is not old and (isinstance(new, wp.array) or new != old):
-                    cmd.set_param_at_index(i, new)
-                    last[i] = new
-        cmd.launch()
-
     def _pairs(self, launches: list, buf: wp.array) -> tuple[wp.array, int]:
         """The launches ``(key, kernel, dim, inputs)`` into ``buf`` through one shared counter; on
         overflow grow it to the exact count and launch them all again.
@@ -457,7 +439,7 @@ class BroadPhase:
         for _attempt in range(2):
             self._counter.zero_()
             for key, kernel, dim, inputs in launches:
-                self._launch(key, kernel, dim, [*inputs, *tail, buf])
+                self._launches.launch(key, kernel, dim, [*inputs, *tail, buf])
             total = int(host(self._counter)[0])
             if total < 0:
                 raise RuntimeError("broad phase: more than 2^31 candidate pairs; reduce inflation")

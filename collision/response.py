@@ -55,7 +55,7 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from collision.buffers import Staging, host, upload
+from collision.buffers import RecordedLaunches, Staging, host, upload
 from collision.ccd import CandidateNarrowPhase
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
@@ -65,7 +65,7 @@ from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import pair_weights_kernel, solve_contacts_kernel
 from sim.model import Model, State
-from sim.rotation import quat_to_matrix, quat_turn
+from sim.rotation import cross, quat_to_matrix, quat_turn
 
 SEPARATION_RATE = 0.1
 """Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
@@ -107,10 +107,16 @@ ACTIVE_SET_ITERATIONS = 20
 sticking and sliding) after the exact solve of the replayed response."""
 
 class _Contacts:
-    """The contact set of one substep (grows over the CCD rounds; keyed by primitive pair)."""
+    """The contact set of one substep (grows over the CCD rounds; keyed by primitive pair).
 
-    def __init__(self) -> None:
-        self.keys: dict[tuple[int, int, int], int] = {}
+    Args:
+        key_base: more than any index a pair holds (vertex, face, edge or plane): a pair
+            ``(kind, a, b)`` is keyed by the one integer ``(kind key_base + a) key_base + b``.
+    """
+
+    def __init__(self, key_base: int) -> None:
+        self.key_base = int(key_base)
+        self.key = np.zeros(0, dtype=np.int64)  # the pair of each row as one integer (see _keys)
         self.idx = np.zeros((0, 4), dtype=np.int64)  # vertex indices (CCD order)
         self.kind = np.zeros(0, dtype=np.int64)  # 0 vertex-face, 1 edge-edge, 2 vertex-plane
         self.w = np.zeros((0, 4))  # weights: side A positive (sum 1), side B negative (sum -1)
@@ -127,20 +133,34 @@ class _Contacts:
     def __len__(self) -> int:
         return len(self.toi)
 
+    def _keys(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
+        pair = np.asarray(pair, dtype=np.int64).reshape(-1, 2)
+        return (np.asarray(kind, dtype=np.int64) * self.key_base + pair[:, 0]) * self.key_base + pair[:, 1]
+
+    def _rows(self, keys: np.ndarray) -> np.ndarray:
+        """(C,) the row of each key in the set, -1 where the pair is not in it (keys are unique
+        per row, so a sorted search finds at most one)."""
+        if not len(self.key):
+            return np.full(len(keys), -1, dtype=np.int64)
+        order = np.argsort(self.key)
+        ordered = self.key[order]
+        at = np.minimum(np.searchsorted(ordered, keys), len(ordered) - 1)
+        return np.where(ordered[at] == keys, order[at], -1)
+
     def at_end(self, kind: np.ndarray, pair: np.ndarray, toi: np.ndarray, h: float) -> np.ndarray:
         """(C,) bool: the pair is in the set already, at the very end of the substep ``h`` [s],
         and detected there again (``toi`` [s])."""
         end = h * (1.0 - END_OF_SUBSTEP)
-        out = np.zeros(len(pair), dtype=bool)
-        for c in range(len(pair)):
-            row = self.keys.get((int(kind[c]), int(pair[c, 0]), int(pair[c, 1])))
-            out[c] = row is not None and self.toi[row] >= end and toi[c] >= end
-        return out
+        row = self._rows(self._keys(kind, pair))
+        found = row >= 0
+        if not found.any():
+            return found
+        return found & (self.toi[np.maximum(row, 0)] >= end) & (np.asarray(toi) >= end)
 
     def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None):
-        """Adds contacts (a pair already present takes the new normal, weights and target, and
-        the earlier of the two times). ``timed`` (C,) bool: the time is differentiated by the
-        replay (default: none is).
+        """Adds contacts, pairs distinct (a pair already present takes the new normal, weights
+        and target, and the earlier of the two times). ``timed`` (C,) bool: the time is
+        differentiated by the replay (default: none is).
 
         Returns:
             (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
@@ -151,35 +171,31 @@ class _Contacts:
         new_index = np.full(before, -1, dtype=np.int64)
         keep_toi = np.zeros(before, dtype=np.int64)
         keep_target = np.zeros(before, dtype=np.int64)
-        new_rows = []
         timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
-        for c in range(len(pair)):
-            key = (int(kind[c]), int(pair[c, 0]), int(pair[c, 1]))
-            row = self.keys.get(key)
-            if row is None:
-                self.keys[key] = len(self.toi) + len(new_rows)
-                new_rows.append(c)
-            else:
-                self.w[row], self.n[row] = w[c], n[c]
-                new_index[row] = c
-                keep_toi[row] = int(self.toi[row] <= toi[c])
-                keep_target[row] = int(self.target[row] >= target[c])
-                if not keep_toi[row]:
-                    self.timed[row] = timed[c]
-                self.toi[row] = min(self.toi[row], toi[c])
-                self.target[row] = max(self.target[row], target[c])
-        if new_rows:
-            r = np.asarray(new_rows)
-            self.idx = np.concatenate([self.idx, idx[r]])
-            self.kind = np.concatenate([self.kind, kind[r]])
-            self.w = np.concatenate([self.w, w[r]])
-            self.n = np.concatenate([self.n, n[r]])
-            self.toi = np.concatenate([self.toi, toi[r]])
-            self.target = np.concatenate([self.target, target[r]])
-            self.edge_edge = np.concatenate([self.edge_edge, kind[r] == 1])
-            self.timed = np.concatenate([self.timed, timed[r]])
-            self.jn = np.concatenate([self.jn, np.zeros(len(r))])
-            self.jt = np.concatenate([self.jt, np.zeros((len(r), 3))])
+        keys = self._keys(kind, pair)
+        row = self._rows(keys)
+        old = np.flatnonzero(row >= 0)  # arguments whose pair is in the set already
+        if len(old):
+            at = row[old]
+            self.w[at], self.n[at] = w[old], n[old]
+            new_index[at] = old
+            kept_toi = self.toi[at] <= toi[old]
+            kept_target = self.target[at] >= target[old]
+            keep_toi[at] = kept_toi
+            keep_target[at] = kept_target
+            self.timed[at] = np.where(kept_toi, self.timed[at], timed[old])
+            # the earlier time and the larger target, ties (and NaN) keeping the old value (as
+            # Python's min / max did)
+            self.toi[at] = np.where(toi[old] < self.toi[at], toi[old], self.toi[at])
+            self.target[at] = np.where(target[old] > self.target[at], target[old], self.target[at])
+        r = np.flatnonzero(row < 0)  # new pairs
+        if len(r):
+            rows = {"key": keys[r], "idx": idx[r], "kind": kind[r], "w": w[r], "n": n[r], "toi": toi[r],
+                    "target": target[r], "edge_edge": kind[r] == 1, "timed": timed[r], "jn": np.zeros(len(r)),
+                    "jt": np.zeros((len(r), 3))}
+            for name, value in rows.items():
+                # the first contacts of a substep need no concatenation (the rows are copies)
+                setattr(self, name, np.concatenate([getattr(self, name), value]) if before else value)
             new_index = np.concatenate([new_index, r])
             keep_toi = np.concatenate([keep_toi, np.zeros(len(r), dtype=np.int64)])
             keep_target = np.concatenate([keep_target, np.zeros(len(r), dtype=np.int64)])
@@ -247,7 +263,13 @@ class ImpulseCollisionHandler:
         self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=model.device)
         self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=model.device)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
+        # the rigid surface vertices and the planes' normals / offsets, for the vertex-plane tests
+        self._shape_ids = np.arange(mesh.shape_offset, mesh.static_offset)
+        self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
+        self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
+        self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
+        self._levers_uploaded = None  # the lever arms / inertias _solve last uploaded
         self._out = model.state()
         self.last_sweeps = 0
         self.broad_phase = None
@@ -302,11 +324,14 @@ class ImpulseCollisionHandler:
     # ------------------------------------------------------------------------------------------
     # geometry
 
-    def _vertices(self, particle_q, body_q):
+    def _vertices(self, particle_q, body_q, levers=None):
         """World positions of all collidable vertices for particle and body arrays (numpy), and
-        the dummy vertex at the origin."""
-        x = self.mesh.positions(particle_q, body_q if self.n_bodies else np.zeros((self.model.body_count, 7)))
-        return np.concatenate([x, np.zeros((1, 3))])
+        the dummy vertex at the origin (``levers``: see :meth:`CollisionMesh.positions`)."""
+        x = np.empty((self.n_vertices + 1, 3))
+        x[-1] = 0.0
+        self.mesh.positions(particle_q, body_q if self.n_bodies else np.zeros((self.model.body_count, 7)), levers,
+                            out=x[:-1])
+        return x
 
     def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
@@ -328,8 +353,8 @@ class ImpulseCollisionHandler:
             return np.zeros((0, 4))
         put = self._staging.put
         out = self._staging.empty("weights", len(y), wp.vec4d)
-        wp.launch(pair_weights_kernel, dim=len(y), device=self.model.device,
-                  inputs=[put("kind", kind, wp.int32), put("y", np.reshape(y, (-1, 3)), wp.vec3d)], outputs=[out])
+        self._launches.launch("weights", pair_weights_kernel, len(y),
+                              [put("kind", kind, wp.int32), put("y", np.reshape(y, (-1, 3)), wp.vec3d), out])
         return host(out)[: len(y)].copy()
 
     def _plane_proximity(self, x0: np.ndarray, delta: float):
@@ -337,8 +362,8 @@ class ImpulseCollisionHandler:
         pair (vertex, plane), vertex indices (vertex, dummy x3), signed distance)."""
         if not (self.n_shape and len(self.planes)):
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
-        verts = np.arange(self.shape_offset, self.shape_offset + self.n_shape)
-        dist = x0[verts] @ self.planes[:, :3].T - self.planes[:, 3]
+        verts = self._shape_ids
+        dist = x0[verts] @ self._plane_normals_t - self._plane_offsets
         v, k = np.nonzero(dist < delta)
         return self._plane_rows(verts[v], k) + (dist[v, k],)
 
@@ -369,9 +394,9 @@ class ImpulseCollisionHandler:
             tois.append(toi)
             sources.append(source)
         if self.n_shape and len(self.planes):
-            verts = np.arange(self.shape_offset, self.shape_offset + self.n_shape)
-            d0 = x0[verts] @ self.planes[:, :3].T - self.planes[:, 3]
-            d1 = x1[verts] @ self.planes[:, :3].T - self.planes[:, 3]
+            verts = self._shape_ids
+            d0 = x0[verts] @ self._plane_normals_t - self._plane_offsets
+            d1 = x1[verts] @ self._plane_normals_t - self._plane_offsets
             v, k = np.nonzero((d1 < 0.0) & (d1 < d0))
             if len(v):
                 kind, pair, idx = self._plane_rows(verts[v], k)
@@ -395,11 +420,12 @@ class ImpulseCollisionHandler:
         t = self.vertex_type[idx]
         o = self.vertex_owner[idx]
         p = t == _PARTICLE
-        vel[p] = vp[o[p]]
+        if len(vp):
+            vel[p] = vp[o[p]]
         b = t == _BODY
-        if b.any():
+        if len(bv):
             body = o[b]
-            vel[b] = bv[body, 3:6] + np.cross(bv[body, :3], r0[idx[b] - self.shape_offset])
+            vel[b] = bv[body, 3:6] + cross(bv[body, :3], r0[idx[b] - self.shape_offset])
         return vel
 
     def _velocities_at(self, idx, toi, t_p, t_b, before, after, r0):
@@ -447,23 +473,27 @@ class ImpulseCollisionHandler:
         jt = put("jt", cs.jt, wp.vec3d)
         sweeps = self._staging.empty("sweeps", 1, wp.int32)
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
-        wp.launch(
-            solve_contacts_kernel, dim=1,
-            inputs=[
-                len(cs),
-                put("idx", cs.idx, wp.vec4i),
-                put("w", cs.w, wp.vec4d),
-                put("n", cs.n, wp.vec3d),
-                put("target", cs.target, wp.float64),
-                put("edge_edge", cs.edge_edge, wp.int32),
-                self._vertex_type_w, self._vertex_owner_w,
-                put("r0", r0, wp.vec3d), int(self.shape_offset),
-                self._particle_inv_mass_w, self._body_inv_mass_w, put("inv_ib", inv_inertia_w, wp.mat33d),
-                wp.float64(self.model.friction), int(SOLVER_ITERATIONS), wp.float64(tol),
-            ],
-            outputs=[vp_w, lin_w, ang_w, jn, jt, sweeps],
-            device=self.model.device,
-        )
+        # the lever arms and world inertias stay the same over a substep's solves: uploaded once
+        # (the arrays are kept, so a later substep's new ones cannot take the same id)
+        if self._levers_uploaded is None or self._levers_uploaded[0] is not r0 \
+                or self._levers_uploaded[1] is not inv_inertia_w:
+            put("r0", r0, wp.vec3d)
+            put("inv_ib", inv_inertia_w, wp.mat33d)
+            self._levers_uploaded = (r0, inv_inertia_w)
+        self._launches.launch("solve", solve_contacts_kernel, 1, [
+            len(cs),
+            put("idx", cs.idx, wp.vec4i),
+            put("w", cs.w, wp.vec4d),
+            put("n", cs.n, wp.vec3d),
+            put("target", cs.target, wp.float64),
+            put("edge_edge", cs.edge_edge, wp.int32),
+            self._vertex_type_w, self._vertex_owner_w,
+            self._staging.empty("r0", len(r0), wp.vec3d), int(self.shape_offset),
+            self._particle_inv_mass_w, self._body_inv_mass_w,
+            self._staging.empty("inv_ib", len(inv_inertia_w), wp.mat33d),
+            float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
+            vp_w, lin_w, ang_w, jn, jt, sweeps,
+        ])
         P, B, C = len(vp), len(bv), len(cs)
         if P:
             vp[:] = host(vp_w)[:P]
@@ -489,11 +519,12 @@ class ImpulseCollisionHandler:
             toi = np.repeat(cs.toi, 4)
             t = self.vertex_type[cs.idx].ravel()
             o = self.vertex_owner[cs.idx].ravel()
-            w = cs.w.ravel()
-            p = (t == _PARTICLE) & (w != 0)
-            np.minimum.at(t_p, o[p], toi[p])
-            b = t == _BODY
-            np.minimum.at(t_b, o[b], toi[b])
+            if n_p:
+                p = (t == _PARTICLE) & (cs.w.ravel() != 0)
+                np.minimum.at(t_p, o[p], toi[p])
+            if n_b:
+                b = t == _BODY
+                np.minimum.at(t_b, o[b], toi[b])
         return t_p, t_b
 
     # ------------------------------------------------------------------------------------------
@@ -526,28 +557,34 @@ class ImpulseCollisionHandler:
         if self.differentiable:
             return self._call_replayed(state_in, state_pred, h)
         P, B = self.n_particles, self.n_bodies
-        x0p = state_in.particle_q.numpy()[:P] if P else np.zeros((0, 3))
-        bq0 = state_in.body_q.numpy() if B else np.zeros((0, 7))
-        vp_minus = state_pred.particle_qd.numpy()[:P] if P else np.zeros((0, 3))
-        bv_minus = state_pred.body_qd.numpy() if B else np.zeros((0, 6))
-        x1p_pred = state_pred.particle_q.numpy()[:P] if P else np.zeros((0, 3))
-        bq1_pred = state_pred.body_q.numpy() if B else np.zeros((0, 7))
+        # host views of the states (read only here: the result goes to the handler's own State)
+        x0p = host(state_in.particle_q)[:P] if P else np.zeros((0, 3))
+        bq0 = host(state_in.body_q) if B else np.zeros((0, 7))
+        vp_minus = host(state_pred.particle_qd)[:P] if P else np.zeros((0, 3))
+        bv_minus = host(state_pred.body_qd) if B else np.zeros((0, 6))
+        x1p_pred = host(state_pred.particle_q)[:P] if P else np.zeros((0, 3))
+        bq1_pred = host(state_pred.body_q) if B else np.zeros((0, 7))
         vp, bv = vp_minus.copy(), bv_minus.copy()
-        x0 = self._vertices(x0p, bq0)
         r0 = np.zeros((0, 3))
         inv_inertia_w = np.zeros((0, 3, 3))
         if B:
             rot = quat_to_matrix(bq0[:, 3:7])
-            r0 = np.einsum("nij,nj->ni", rot[self.shape_body], self.shape_vertices)
+            r0 = self.mesh.levers(rot)
             inv_inertia_w = rot @ self.body_inv_inertia @ np.swapaxes(rot, 1, 2)
+        x0 = self._vertices(x0p, bq0, r0 if B else None)
+        x1_pred = self._vertices(x1p_pred, bq1_pred)
+        inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         zones = _ImpactZones(P, B, self.particle_inv_mass)
         delta = self.separation
         self._sep_speed = delta / h
         e = self.model.restitution
-        cs = _Contacts()
+        cs = _Contacts(self._key_base)
 
         def plan():
-            """End positions (particles, body poses) of the current velocities and contact times."""
+            """End positions (particles, body poses, all vertices) of the current velocities and
+            contact times, and the contact times per particle / body."""
+            if not len(cs) and not zones.particles.any() and not zones.bodies.any():
+                return x1p_pred, bq1_pred, inf_p, inf_b, x1_pred  # nothing changed the prediction
             t_p, t_b = self._owner_times(cs, P, B)
             x1p = x1p_pred.copy()
             hit = np.isfinite(t_p)
@@ -567,11 +604,11 @@ class ImpulseCollisionHandler:
                 bq1[zb, 3:7] = quat_turn(bq0[zb, 3:7], bv[zb, :3], np.full(int(zb.sum()), h))
             t_p[zp] = 0.0
             t_b[zb] = 0.0
-            return x1p, bq1, t_p, t_b
+            return x1p, bq1, t_p, t_b, self._vertices(x1p, bq1)
 
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
-        self._narrow.cover(x0[:-1], self._vertices(x1p_pred, bq1_pred)[:-1], COVER_MARGIN * delta)
+        self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta)
         # 1. proximity contacts at the start of the substep
         kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
         if len(kind):
@@ -592,8 +629,8 @@ class ImpulseCollisionHandler:
                     y = x0[idx[touching]]
                     geo = np.where(
                         ee_mask[touching, None],
-                        np.cross(y[:, 1] - y[:, 0], y[:, 3] - y[:, 2]),
-                        np.cross(y[:, 2] - y[:, 1], y[:, 3] - y[:, 1]),
+                        cross(y[:, 1] - y[:, 0], y[:, 3] - y[:, 2]),
+                        cross(y[:, 2] - y[:, 1], y[:, 3] - y[:, 1]),
                     )
                     v = vrel[touching]
                     speed = np.linalg.norm(v, axis=1, keepdims=True)
@@ -621,8 +658,7 @@ class ImpulseCollisionHandler:
         # 2-5. CCD rounds on the planned motion
         failsafe = False
         for iteration in itertools.count():
-            x1p, bq1, t_p, t_b = plan()
-            x1 = self._vertices(x1p, bq1)
+            x1p, bq1, t_p, t_b, x1 = plan()
             kind, pair, idx, toi, _ = self._ccd_candidates(x0, x1)
             if len(kind) == 0:
                 break
@@ -655,12 +691,12 @@ class ImpulseCollisionHandler:
             self._solve(cs, vp, bv, r0, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
-        x1p, bq1, _, _ = plan()
+        # the result is the last round's plan: every exit of the rounds follows a plan() with
+        # nothing changed after it (no contact added, no velocity solved, no zone grown)
         active = (cs.jn > 0) if len(cs) else np.zeros(0, dtype=bool)
         if active.any():
             side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None], cs.w[active], 0.0))
             # contact point: side A's closest point at t* (linear paths of the planned motion)
-            x1 = self._vertices(x1p, bq1)
             frac = (cs.toi[active] / h)[:, None, None]
             y = x0[cs.idx[active]] + frac * (x1[cs.idx[active]] - x0[cs.idx[active]])
             self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
@@ -711,7 +747,7 @@ class ImpulseCollisionHandler:
         delta = self.separation
         self._sep_speed = delta / h
         mu = float(m.friction)
-        cs = _Contacts()
+        cs = _Contacts(self._key_base)
         st = {"dev": None, "vp": vm_p, "vb": vm_b}
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
         def owners():
@@ -910,8 +946,8 @@ class ImpulseCollisionHandler:
         c = len(idx)
         n = np.zeros((c, 3))
         vf = ~edge_edge
-        n[vf] = np.cross(y[vf, 2] - y[vf, 1], y[vf, 3] - y[vf, 1])
-        n[edge_edge] = np.cross(y[edge_edge, 1] - y[edge_edge, 0], y[edge_edge, 3] - y[edge_edge, 2])
+        n[vf] = cross(y[vf, 2] - y[vf, 1], y[vf, 3] - y[vf, 1])
+        n[edge_edge] = cross(y[edge_edge, 1] - y[edge_edge, 0], y[edge_edge, 3] - y[edge_edge, 2])
         rel = np.einsum("ck,ckd->cd", w, x0[idx])
         norm = np.linalg.norm(n, axis=1)
         scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))
