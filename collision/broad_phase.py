@@ -320,6 +320,7 @@ class BroadPhase:
         self._face_bvhs: list[wp.Bvh] | None = None  # one per entry of _vf_plans
         self._edge_bvhs: list[wp.Bvh] | None = None  # one per entry of _ee_plans
         self._queries_since_build = 0
+        self.query_count = 0  # queries so far (a cover of the buffers checks it is still the last)
         self.rebuild_every = int(rebuild_every)
         if self.rebuild_every < 1:
             raise ValueError(f"rebuild_every: expected a positive integer, got {rebuild_every!r}")
@@ -370,6 +371,7 @@ class BroadPhase:
             raise ValueError(f"inflation: expected a non-negative finite number, got {inflation!r}")
 
         nv, nf, ne = self.num_vertices, len(self.faces), len(self.edges)
+        self.query_count += 1  # the buffers are refilled: earlier results are gone
         if nv == 0 or not self._any_allowed:
             return self._vf_buf, 0, self._ee_buf, 0
         if rebuild is None:

@@ -106,10 +106,11 @@ class CandidateNarrowPhase:
     A collision response that runs several rounds per step can share one broad-phase query
     between them: :meth:`cover` queries the swept boxes from the start positions to the
     predicted end positions, widened by a margin ``m``; a later :meth:`near` (``max_distance <=
-    m`` at the same start positions) or :meth:`ccd` (end positions within ``m / 2``, per
-    coordinate, of the predicted ones) reuses those candidates, which then hold every pair the
-    query of its own would have found (a vertex's swept box grows by at most the distance its
-    end moves, and a pair's two boxes by twice that). Anything else queries afresh (and drops
+    m`` at the same start positions) or :meth:`ccd` with thickness ``t`` (end positions within
+    ``(m - t) / 2``, per coordinate, of the predicted ones) reuses those candidates, which then
+    hold every pair the query of its own would have found (a vertex's swept box grows by at most
+    the distance its end moves, and a pair's two boxes by twice that), as long as no other query
+    of the broad phase has refilled its buffers since. Anything else queries afresh (and drops
     the cover). The hits are the same either way.
 
     Args:
@@ -118,7 +119,7 @@ class CandidateNarrowPhase:
     """
 
     COVER_SAFETY = 0.45
-    """An end position may move this fraction of the margin (not the full half) from the covered
+    """An end position may move this fraction of ``m - t`` (not the full half) from the covered
     one: room for the rounding of the boxes' float64 arithmetic (the broad phase pads its
     float32 boxes for its own rounding only)."""
 
@@ -139,7 +140,7 @@ class CandidateNarrowPhase:
         n = broad_phase.num_vertices
         self._x0 = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._x1 = wp.empty(n, dtype=wp.vec3d, device=dev)
-        self._cover = None  # (buffers, x0, x1, margin) of the last cover() while valid
+        self._cover = None  # (buffers, x0, x1, margin, broad-phase query count) of the last cover()
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
         self.reuses = 0  # calls answered from a cover
@@ -151,14 +152,16 @@ class CandidateNarrowPhase:
         x1 = np.asarray(x1, dtype=np.float64)
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
         self.queries += 1
-        self._cover = (buffers, x0.copy(), x1.copy(), float(margin))
+        self._cover = (buffers, x0.copy(), x1.copy(), float(margin), self.broad_phase.query_count)
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):
         """Candidate buffers and the device positions (start, end) for the motion ``x0 -> x1``
         and the inflation: from the cover when it holds them, else a fresh query."""
         c = self._cover
-        if c is not None and inflation <= c[3] and np.array_equal(x0, c[1]) and (
-                not end_moves or np.max(np.abs(x1 - c[2]), initial=0.0) <= self.COVER_SAFETY * c[3]):
+        # a pair within `inflation` at the new motion is within inflation + 2 x (how far an end
+        # moved) at the covered one; and nobody else may have refilled the broad phase's buffers
+        if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count and np.array_equal(x0, c[1]) and (
+                not end_moves or np.max(np.abs(x1 - c[2]), initial=0.0) <= self.COVER_SAFETY * (c[3] - inflation)):
             self.reuses += 1
             return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
         self._cover = None  # the fresh query overwrites the broad phase's buffers
@@ -209,7 +212,7 @@ class CandidateNarrowPhase:
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
-        buffers, xa, xb = self._candidates(x0, x1, 0.0, end_moves=True)
+        buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
 
         def launch(kind, pairs, n):
             self._launches.launch(("ccd", kind), _k.pair_ccd_kernel, n,

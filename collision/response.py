@@ -173,6 +173,8 @@ class _Contacts:
         keep_target = np.zeros(before, dtype=np.int64)
         timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
         keys = self._keys(kind, pair)
+        if len(np.unique(keys)) != len(keys):
+            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         row = self._rows(keys)
         old = np.flatnonzero(row >= 0)  # arguments whose pair is in the set already
         if len(old):

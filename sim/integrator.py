@@ -33,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 import warp as wp
 
+from collision.replay import active_tape
 from kernels.forces import eval_springs
 from kernels.integrate import (
     find_plane_contacts,
@@ -55,7 +56,11 @@ def copy_state(src: State, dst: State, names=("particle_q", "particle_qd", "body
 
 
 def _requires_grad(state: State) -> bool:
-    return any(a is not None and a.requires_grad for a in (state.particle_q, state.particle_qd, state.body_q, state.body_qd))
+    """Whether a step from ``state`` must keep every intermediate array: its arrays require
+    gradients, or a ``wp.Tape`` is recording (it may differentiate w.r.t. model arrays only, and
+    reused scratch arrays would be overwritten before its backward reads them)."""
+    return active_tape() is not None or any(
+        a is not None and a.requires_grad for a in (state.particle_q, state.particle_qd, state.body_q, state.body_qd))
 
 
 class SemiImplicitIntegrator:

@@ -466,3 +466,35 @@ def test_candidate_cover_answers_covered_calls_and_requeries_the_rest():
     before = narrow.queries
     narrow.near(x0, margin)
     assert narrow.queries == before + 1
+
+
+def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
+    """With a thickness, pairs closer than it are candidates (the broad phase is inflated by
+    it): two still sheets 5 cm apart and a 6 cm thickness hit as in mesh_ccd, with and without
+    a cover; a cover whose broad-phase buffers another query refilled is not reused."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    n = 6
+    xs, ys = np.meshgrid(np.linspace(0, 0.5, n), np.linspace(0, 0.5, n))
+    sheet = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
+    faces = np.vstack([faces, np.array(faces) + n * n])
+    x0 = np.vstack([sheet, sheet + [0.0, 0.0, 0.05]])
+    edges = mesh_edges(faces)
+    bp = BroadPhase(faces, edges, num_vertices=len(x0))
+    narrow = CandidateNarrowPhase(bp)
+    want = mesh_ccd(x0, x0, faces, edges, thickness=0.06).num_contacts
+    assert want > 0
+    assert len(narrow.ccd(x0, x0, 0.06)[0]) == want
+    narrow.cover(x0, x0, 1.0)
+    assert len(narrow.ccd(x0, x0, 0.06)[0]) == want
+    narrow.cover(x0, x0, 1.0)
+    bp.query(x0, x0 + 5.0)  # someone else's query refills the buffers
+    before = narrow.queries
+    assert len(narrow.ccd(x0, x0, 0.06)[0]) == want
+    assert narrow.queries == before + 1
