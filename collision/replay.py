@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 import warp._src.context as _warp_context
 
+from collision.buffers import upload
 from kernels import contact as K
 
 REGULARIZATION = 1e-8
@@ -98,25 +99,54 @@ class ContactReplay:
         self._empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self._empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
         self.largest_system = 0
+        self._arena: dict = {}  # (dtype, square, size) -> arrays reused by calls without a tape
+        self._taken: dict = {}  # (dtype, square, size) -> how many this call has taken
 
     # ------------------------------------------------------------------ helpers
     def _grad(self) -> bool:
         return active_tape() is not None
 
+    def begin(self) -> None:
+        """Starts a response call: the arrays the previous call took from the arena (see
+        :meth:`take`) may be handed out again. The caller must have copied that call's results."""
+        self._taken.clear()
+
+    def take(self, shape, dtype, zero: bool = True, grad: bool = True) -> wp.array:
+        """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh under a
+        recording tape (it must keep every array it read; with a gradient array when ``grad``),
+        else a view of the next array of this call from the arena of reused ones, whose sizes are
+        powers of two (a response without gradients allocates no memory once its largest sizes
+        have been met), zeroed unless ``zero`` is False (the caller fills it)."""
+        if self._grad():
+            return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad)
+        square = isinstance(shape, tuple)
+        n = shape[0] if square else int(shape)
+        size = 1 << max(n - 1, 0).bit_length()  # the power of two >= n
+        key = (dtype, square, size)
+        k = self._taken.get(key, 0)
+        self._taken[key] = k + 1
+        pool = self._arena.setdefault(key, [])
+        if k == len(pool):
+            pool.append(wp.zeros((size, size) if square else size, dtype=dtype, device=self.device))
+        out = pool[k][:n, :n] if square else pool[k][:n]
+        if zero:
+            out.zero_()
+        return out
+
     def _zeros(self, n, dtype, shape=None):
-        return wp.zeros(shape if shape is not None else n, dtype=dtype, device=self.device, requires_grad=self._grad())
+        return self.take(shape if shape is not None else n, dtype)
 
     def _ints(self, a, dtype=wp.int32):
         a = np.ascontiguousarray(a)
         if a.shape[0] == 0:
             a = np.zeros((1,) + a.shape[1:], dtype=a.dtype)
-        return wp.array(a.astype(np.int32), dtype=dtype, device=self.device)
+        return upload(self.take(a.shape[0], dtype, zero=False, grad=False), a.astype(np.int32))
 
     def _floats(self, a, dtype=wp.float64):
         a = np.ascontiguousarray(a, dtype=np.float64)
         if a.shape[0] == 0:
             a = np.zeros((1,) + a.shape[1:])
-        return wp.array(a, dtype=dtype, device=self.device)
+        return upload(self.take(a.shape[0], dtype, zero=False, grad=False), a)
 
     @staticmethod
     def _or(a, empty):
@@ -139,7 +169,7 @@ class ContactReplay:
     def world_inverse_inertia(self, body_q):
         """World inverse inertia tensors at the poses ``body_q`` (B,) (a dummy when B = 0)."""
         if body_q is None or body_q.shape[0] == 0:
-            return wp.zeros(1, dtype=wp.mat33d, device=self.device)
+            return self._zeros(1, wp.mat33d)
         out = self._zeros(body_q.shape[0], wp.mat33d)
         wp.launch(K.body_world_inverse_inertia_kernel, dim=body_q.shape[0],
                   inputs=[body_q, self.body_inv_inertia_body], outputs=[out], device=self.device)
@@ -207,7 +237,7 @@ class ContactReplay:
         c = len(kinds)
         pairs_w = self._ints(pairs, wp.vec4i)
         kinds_w = self._ints(kinds)
-        sides = (wp.zeros(c, dtype=wp.vec2i, device=self.device), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
+        sides = (self.take(c, wp.vec2i, grad=False), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
                  self._zeros(c, wp.vec3d))
         wp.launch(K.contact_sides_kernel, dim=c,
                   inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
@@ -281,7 +311,7 @@ class ContactReplay:
     def _dense_solve(self, matrix, rhs):
         """``A^-1 b`` with the implicit adjoint recorded on the active tape."""
         n = rhs.shape[0]
-        work = wp.zeros((n, n), dtype=wp.float64, device=self.device)
+        work = self.take((n, n), wp.float64, grad=False)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
             wp.launch(K.dense_solve_kernel, dim=1, inputs=[matrix, rhs, 0], outputs=[work, solution],
@@ -331,7 +361,7 @@ class ContactReplay:
         bq = self._or(body_q, self._empty_pose)
         vb_in = self._or(vb, self._empty_twist)
         b_mass = self._or(body_mass, self.body_inv_mass)  # any float64 array when there is no body
-        b_inertia = self._or(body_inertia, wp.zeros(1, dtype=wp.mat33d, device=self.device))
+        b_inertia = self._or(body_inertia, self._zeros(1, wp.mat33d))
         nz = max(int(n_zones), 1)
         centre, linear, omega = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
         if n_zones:

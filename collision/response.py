@@ -730,6 +730,7 @@ class ImpulseCollisionHandler:
         replayed (:meth:`collision.replay.ContactReplay.zone_velocities`), so every substep is
         taped and ``untaped_substeps`` stays 0."""
         R = self._replay
+        R.begin()  # the previous call's results were copied by the integrator: its arrays are free
         P, B = self.n_particles, self.n_bodies
         m = self.model
         nv = self.n_vertices
@@ -778,7 +779,7 @@ class ImpulseCollisionHandler:
 
         def plan():
             po, bo, t_p, t_b = owners()
-            toi = st["dev"][0] if st["dev"] is not None else wp.zeros(1, dtype=wp.float64, device=m.device)
+            toi = st["dev"][0] if st["dev"] is not None else R.take(1, wp.float64, grad=False)
             X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], bq0_w,
                                    state_pred.body_q if B else None, vm_b, st["vb"], po, bo, toi, h)
             return X1p, BQ1, t_p, t_b
