@@ -51,16 +51,27 @@ class paused_tape:
     """Context manager: launches inside are not recorded on the active tape (for trial solves
     whose results are thrown away; only the final, consistent solve is replayed backwards)."""
 
+    paused: list = []
+    """The tapes paused now (innermost last): a tape exists even while none records."""
+
     def __enter__(self):
         self._tape = active_tape()
         if self._tape is not None:
             _warp_context.runtime.tape = None
+            paused_tape.paused.append(self._tape)
         return self._tape
 
     def __exit__(self, *exc):
         if self._tape is not None:
+            paused_tape.paused.pop()
             _warp_context.runtime.tape = self._tape
         return False
+
+
+def any_tape() -> bool:
+    """Whether a ``wp.Tape`` is recording or paused (:class:`paused_tape`): arrays made now may
+    still be read by its backward (a paused trial's result can feed a later recorded launch)."""
+    return active_tape() is not None or bool(paused_tape.paused)
 
 
 class ContactReplay:
@@ -112,13 +123,14 @@ class ContactReplay:
         self._taken.clear()
 
     def take(self, shape, dtype, zero: bool = True, grad: bool = True) -> wp.array:
-        """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh under a
-        recording tape (it must keep every array it read; with a gradient array when ``grad``),
+        """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh while a tape
+        records or is paused (its backward reads every array it recorded, and a paused trial's
+        result may feed a recorded launch; with a gradient array when ``grad`` and recording),
         else a view of the next array of this call from the arena of reused ones, whose sizes are
         powers of two (a response without gradients allocates no memory once its largest sizes
         have been met), zeroed unless ``zero`` is False (the caller fills it)."""
-        if self._grad():
-            return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad)
+        if any_tape():
+            return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad and self._grad())
         square = isinstance(shape, tuple)
         n = shape[0] if square else int(shape)
         size = 1 << max(n - 1, 0).bit_length()  # the power of two >= n

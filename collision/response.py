@@ -814,6 +814,8 @@ class ImpulseCollisionHandler:
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
                     vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
+                if iteration == 0:
+                    recorded = (vp_d, vb_d, normal)
                 jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
                 vrel = np.einsum("ck,ckd->cd", cs.w, self._vertex_velocities(
                     cs.idx, vp_d.numpy() if P else vp, vb_d.numpy() if B else bv, r0))
@@ -834,6 +836,10 @@ class ImpulseCollisionHandler:
                 share = self._friction_share(cs, active) if mu > 0 else None
                 vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
                 jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
+            elif tape is not None:
+                # the repairs came back to the first trial's set: its recorded solve (the same
+                # values) is the one the tape continues from, not the last, unrecorded trial
+                vp_d, vb_d, normal = recorded
             if P:
                 st["vp"] = vp_d
                 vp[:] = vp_d.numpy()
