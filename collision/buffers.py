@@ -1,5 +1,6 @@
-"""Reusable Warp arrays filled from host (numpy) data, so that a stepping loop allocates nothing
-per substep, and reusable kernel launches (:class:`RecordedLaunches`).
+"""Reusable Warp arrays filled from host (numpy) data (:class:`Staging`: named buffers) or handed
+out per call (:class:`Arena`), so that a stepping loop allocates nothing per substep, and
+reusable kernel launches (:class:`RecordedLaunches`).
 
 On the CPU a Warp array and its ``numpy()`` view share memory: :func:`upload` writes the view in
 place (no temporary Warp array, no copy launch). On other devices it copies through
@@ -63,6 +64,41 @@ class Staging:
     def put(self, name: str, data: np.ndarray, dtype) -> wp.array:
         return upload(self.empty(name, len(data), dtype), data)
 
+
+
+class Arena:
+    """Arrays handed out one per request within a call and all reused by the next call.
+
+    ``take(shape, dtype)`` (``shape`` an int or a square ``(n, n)``) returns a view of the next
+    array of this call whose size class (the power of two >= n) and dtype match; ``begin()``
+    starts a new call, after which the previous call's arrays may be handed out again (the
+    caller must be done with them). Once the largest sizes and counts of a run have been met,
+    taking allocates no memory (a view is a new array object, not new memory).
+    """
+
+    def __init__(self, device) -> None:
+        self.device = device
+        self._pools: dict = {}  # (dtype, square, size) -> arrays
+        self._taken: dict = {}  # (dtype, square, size) -> how many this call has taken
+
+    def begin(self) -> None:
+        self._taken.clear()
+
+    def take(self, shape, dtype, zero: bool = True) -> wp.array:
+        """The next array of ``shape`` / ``dtype`` of this call, zeroed unless ``zero`` is False."""
+        square = isinstance(shape, tuple)
+        n = shape[0] if square else int(shape)
+        size = 1 << max(n - 1, 0).bit_length()  # the power of two >= n
+        key = (dtype, square, size)
+        k = self._taken.get(key, 0)
+        self._taken[key] = k + 1
+        pool = self._pools.setdefault(key, [])
+        if k == len(pool):
+            pool.append(wp.zeros((size, size) if square else size, dtype=dtype, device=self.device))
+        out = pool[k][:n, :n] if square else pool[k][:n]
+        if zero:
+            out.zero_()
+        return out
 
 class RecordedLaunches:
     """Kernel launches recorded on the first call with a key and replayed after that.

@@ -29,7 +29,7 @@ import numpy as np
 import warp as wp
 import warp._src.context as _warp_context
 
-from collision.buffers import upload
+from collision.buffers import Arena, upload
 from kernels import contact as K
 
 REGULARIZATION = 1e-8
@@ -110,8 +110,7 @@ class ContactReplay:
         self._empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self._empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
         self.largest_system = 0
-        self._arena: dict = {}  # (dtype, square, size) -> arrays reused by calls without a tape
-        self._taken: dict = {}  # (dtype, square, size) -> how many this call has taken
+        self._arena = Arena(device)  # the arrays of calls without a tape
 
     # ------------------------------------------------------------------ helpers
     def _grad(self) -> bool:
@@ -120,30 +119,18 @@ class ContactReplay:
     def begin(self) -> None:
         """Starts a response call: the arrays the previous call took from the arena (see
         :meth:`take`) may be handed out again. The caller must have copied that call's results."""
-        self._taken.clear()
+        self._arena.begin()
 
     def take(self, shape, dtype, zero: bool = True, grad: bool = True) -> wp.array:
         """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh while a tape
         records or is paused (its backward reads every array it recorded, and a paused trial's
         result may feed a recorded launch; with a gradient array when ``grad`` and recording),
-        else a view of the next array of this call from the arena of reused ones, whose sizes are
-        powers of two (a response without gradients allocates no memory once its largest sizes
-        have been met), zeroed unless ``zero`` is False (the caller fills it)."""
+        else the next one of this call from the arena (:class:`collision.buffers.Arena`: a
+        response without gradients allocates no memory once its largest sizes have been met),
+        zeroed unless ``zero`` is False (the caller fills it)."""
         if any_tape():
             return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad and self._grad())
-        square = isinstance(shape, tuple)
-        n = shape[0] if square else int(shape)
-        size = 1 << max(n - 1, 0).bit_length()  # the power of two >= n
-        key = (dtype, square, size)
-        k = self._taken.get(key, 0)
-        self._taken[key] = k + 1
-        pool = self._arena.setdefault(key, [])
-        if k == len(pool):
-            pool.append(wp.zeros((size, size) if square else size, dtype=dtype, device=self.device))
-        out = pool[k][:n, :n] if square else pool[k][:n]
-        if zero:
-            out.zero_()
-        return out
+        return self._arena.take(shape, dtype, zero)
 
     def _zeros(self, n, dtype, shape=None):
         return self.take(shape if shape is not None else n, dtype)

@@ -984,6 +984,41 @@ def symmetric_pinv_apply(A: wp.mat33d, b: wp.vec3d) -> wp.vec3d:
     return u * (wp.dot(u, b) / tr)
 
 
+@wp.func
+def zone_member(
+    i: int,
+    n_particles: int,
+    particle_zone: wp.array(dtype=wp.int32),
+    body_zone: wp.array(dtype=wp.int32),
+    particle_q: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_q: wp.array(dtype=wp.transformd),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    body_mass: wp.array(dtype=wp.float64),
+):
+    """Zone member ``i`` (particle ``i``, then body ``i - n_particles``): its zone (< 0: none),
+    mass, position (a body's centre of mass) and velocity (its centre's)."""
+    z = int(-1)
+    m = wp.float64(0.0)
+    x = wp.vec3d()
+    v = wp.vec3d()
+    if i < n_particles:
+        z = particle_zone[i]
+        if z >= 0:
+            m = zone_member_mass(particle_inv_mass[i])
+            x = particle_q[i]
+            v = particle_qd[i]
+    else:
+        b = i - n_particles
+        z = body_zone[b]
+        if z >= 0:
+            m = body_mass[b]
+            x = wp.transform_get_translation(body_q[b])
+            v = wp.spatial_bottom(body_qd[b])
+    return z, m, x, v
+
+
 @wp.kernel
 def zone_sums_kernel(
     n_particles: int,
@@ -1003,23 +1038,8 @@ def zone_sums_kernel(
     total mass, first moment ``sum m x`` and linear momentum ``sum m v`` of its members at the
     start of the substep (atomic sums)."""
     i = wp.tid()
-    z = int(-1)
-    m = wp.float64(0.0)
-    x = wp.vec3d()
-    v = wp.vec3d()
-    if i < n_particles:
-        z = particle_zone[i]
-        if z >= 0:
-            m = zone_member_mass(particle_inv_mass[i])
-            x = particle_q[i]
-            v = particle_qd[i]
-    else:
-        b = i - n_particles
-        z = body_zone[b]
-        if z >= 0:
-            m = body_mass[b]
-            x = wp.transform_get_translation(body_q[b])
-            v = wp.spatial_bottom(body_qd[b])
+    z, m, x, v = zone_member(i, n_particles, particle_zone, body_zone, particle_q, particle_qd, particle_inv_mass,
+                             body_q, body_qd, body_mass)
     if z >= 0:
         wp.atomic_add(zone_mass, z, m)
         wp.atomic_add(zone_first_moment, z, m * x)
@@ -1047,27 +1067,14 @@ def zone_moments_kernel(
     ``sum m r x v (+ R I R^T w for bodies)`` and the inertia tensor
     ``sum m (|r|^2 E - r r^T) (+ R I R^T)``, ``r = x - c`` (atomic sums)."""
     i = wp.tid()
-    z = int(-1)
-    m = wp.float64(0.0)
-    x = wp.vec3d()
-    v = wp.vec3d()
+    z, m, x, v = zone_member(i, n_particles, particle_zone, body_zone, particle_q, particle_qd, particle_inv_mass,
+                             body_q, body_qd, body_mass)
     own_l = wp.vec3d()
     own_i = wp.mat33d()
-    if i < n_particles:
-        z = particle_zone[i]
-        if z >= 0:
-            m = zone_member_mass(particle_inv_mass[i])
-            x = particle_q[i]
-            v = particle_qd[i]
-    else:
+    if z >= 0 and i >= n_particles:  # a body also spins: its own angular momentum and inertia
         b = i - n_particles
-        z = body_zone[b]
-        if z >= 0:
-            m = body_mass[b]
-            x = wp.transform_get_translation(body_q[b])
-            v = wp.spatial_bottom(body_qd[b])
-            own_i = world_inertia(body_q[b], body_inertia[b])
-            own_l = own_i * wp.spatial_top(body_qd[b])
+        own_i = world_inertia(body_q[b], body_inertia[b])
+        own_l = own_i * wp.spatial_top(body_qd[b])
     if z >= 0:
         c = zone_first_moment[z] / zone_mass[z]
         r = x - c

@@ -292,17 +292,24 @@ def test_lifted_roots_gradient_matches_finite_differences_for_a_miss():
             assert abs(grad[i, c] - fd) <= 1e-7 * max(1.0, abs(fd)), (i, c, grad[i, c], fd)
 
 
-def test_mesh_ccd_cloth_drop_earliest_time_and_errors():
-    from collision.ccd import mesh_ccd
-
-    n = 12
-    xs, ys = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
-    cloth = np.column_stack([xs.ravel(), ys.ravel(), np.full(n * n, 0.25)])
+def _grid(n: int, lo: float, hi: float):
+    """An n x n vertex grid over [lo, hi]^2 at z = 0 and its triangles (two per cell)."""
+    xs, ys = np.meshgrid(np.linspace(lo, hi, n), np.linspace(lo, hi, n))
+    vertices = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)])
     faces = []
     for i in range(n - 1):
         for j in range(n - 1):
             a = i * n + j
             faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
+    return vertices, np.array(faces)
+
+
+def test_mesh_ccd_cloth_drop_earliest_time_and_errors():
+    from collision.ccd import mesh_ccd
+
+    n = 12
+    cloth, faces = _grid(n, -1.0, 1.0)
+    cloth[:, 2] = 0.25
     ground = np.array([[-3.0, -3.0, 0.0], [3.0, -3.0, 0.0], [0.0, 3.0, 0.0]])
     x0 = np.vstack([cloth, ground])
     x1 = x0.copy()
@@ -329,14 +336,7 @@ def _crumpled_sheets(seed: int):
     """Two 7x7 sheets 1 cm apart, crumpled by noise, moving at random: self and mutual pairs."""
     rng = np.random.default_rng(seed)
     n = 7
-    xs, ys = np.meshgrid(np.linspace(0, 0.3, n), np.linspace(0, 0.3, n))
-    sheet = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)])
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
-    faces = np.array(faces)
+    sheet, faces = _grid(n, 0.0, 0.3)
     x0 = np.vstack([sheet, sheet + [0.01, 0.02, 0.01]]) + rng.normal(scale=4e-3, size=(2 * n * n, 3))
     x1 = x0 + rng.normal(scale=1.5e-2, size=x0.shape)
     return x0, x1, np.vstack([faces, faces + n * n])
@@ -476,14 +476,8 @@ def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
     from collision.ccd import CandidateNarrowPhase, mesh_ccd
 
     n = 6
-    xs, ys = np.meshgrid(np.linspace(0, 0.5, n), np.linspace(0, 0.5, n))
-    sheet = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)])
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            faces += [[a, a + 1, a + n], [a + 1, a + n + 1, a + n]]
-    faces = np.vstack([faces, np.array(faces) + n * n])
+    sheet, faces = _grid(n, 0.0, 0.5)
+    faces = np.vstack([faces, faces + n * n])
     x0 = np.vstack([sheet, sheet + [0.0, 0.0, 0.05]])
     edges = mesh_edges(faces)
     bp = BroadPhase(faces, edges, num_vertices=len(x0))

@@ -199,7 +199,9 @@ def test_cloth_thrown_onto_box_matches_finite_differences(friction):
     assert float(res.particle_q[-1, :, 2].detach().min()) > 0.08  # resting on the box top (z ~ 0.09-0.1)
 
 
-def test_rigid_ball_into_hanging_cloth_matches_finite_differences():
+def ball_into_hanging_cloth():
+    """A rigid ball (mu 0.3) thrown into a 4x4-cell cloth hanging from its two top corners; the
+    model and the ball's initial twist (B, 6). Also used by tests/test_rollout_params.py."""
     b = ModelBuilder()
     n, size, s = 4, 0.4, np.sqrt(0.5)
     b.add_cloth_grid((-size / 2, 0.0, 0.6 - size), (s, 0.0, 0.0, s), n, n, size / n, size / n, density=1.0,
@@ -207,8 +209,11 @@ def test_rigid_ball_into_hanging_cloth_matches_finite_differences():
                      pinned=[n * (n + 1), n * (n + 1) + n])
     b.add_rigid_body(*icosphere(0.06, 1), density=300.0, pos=(0.01, -0.15, 0.42))
     b.set_contact(restitution=0.0, friction=0.3, thickness=0.005)
-    model = b.finalize()
-    qd0 = torch.tensor([[0.0, 0.0, 0.0, 0.0, 3.0, 0.1]], dtype=torch.float64)
+    return b.finalize(), torch.tensor([[0.0, 0.0, 0.0, 0.0, 3.0, 0.1]], dtype=torch.float64)
+
+
+def test_rigid_ball_into_hanging_cloth_matches_finite_differences():
+    model, qd0 = ball_into_hanging_cloth()
     rows = [(0, 0), (0, 1), (0, 2)]
     jac, res = _jacobian(model, 10, 8, qd0, "body", rows)
     assert res.stats["contact_substeps"] >= 20 and res.stats["failsafe_substeps"] == 0

@@ -18,8 +18,9 @@ import torch
 import warp as wp
 
 from sim.builder import ModelBuilder
-from sim.mesh_io import box_mesh, icosphere
+from sim.mesh_io import box_mesh
 from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
+from test_rollout import ball_into_hanging_cloth  # the same scene as the velocity-gradient test
 
 DT = 1.0 / 60.0
 FD_STEP = 1e-6
@@ -63,20 +64,6 @@ def _cloth_onto_ground_plane():
     model = b.finalize()
     v0 = torch.tensor(np.tile([0.3, 0.05, -1.0], (model.particle_count, 1)), dtype=torch.float64)
     return model, v0
-
-
-def _ball_into_hanging_cloth():
-    """A rigid ball thrown into a hanging cloth pinned at its top corners (cloth-rigid contacts:
-    the impulses depend on the particles' and the ball's inverse masses)."""
-    b = ModelBuilder()
-    n, size, s = 4, 0.4, np.sqrt(0.5)
-    b.add_cloth_grid((-size / 2, 0.0, 0.6 - size), (s, 0.0, 0.0, s), n, n, size / n, size / n, density=1.0,
-                     stretch_stiffness=10.0, shear_stiffness=3.0, bend_stiffness=0.3, damping=0.01,
-                     pinned=[n * (n + 1), n * (n + 1) + n])
-    b.add_rigid_body(*icosphere(0.06, 1), density=300.0, pos=(0.01, -0.15, 0.42))
-    b.set_contact(restitution=0.0, friction=0.3, thickness=0.005)
-    model = b.finalize()
-    return model, torch.tensor([[0.0, 0.0, 0.0, 0.0, 3.0, 0.1]], dtype=torch.float64)
 
 
 def _params(model):
@@ -165,7 +152,7 @@ def test_contact_gradients_match_finite_differences(scene):
         model, v0 = _cloth_onto_small_box()
         loss = _loss_fn(model, 10, 4, particle_qd=v0, max_derivative=UNMOLLIFIED_MAX_DERIVATIVE)
     elif scene == "ball_into_cloth":
-        model, qd0 = _ball_into_hanging_cloth()
+        model, qd0 = ball_into_hanging_cloth()
         loss = _loss_fn(model, 10, 8, body_qd=qd0)
     else:
         model, v0 = _cloth_onto_ground_plane()
