@@ -1,7 +1,9 @@
-"""CCD accuracy and speed: our batched narrow phase against ipctk's Tight Inclusion CCD.
+"""CCD accuracy and speed: our batched narrow phase against ipctk's Tight Inclusion CCD, per
+precision and CCD tolerance setting.
 
-    python benchmarks/ccd.py [--max-iterations 10000000] [--ipctk-sample N] [--repeats 3]
-                             [--generated] [--toi] [--mesh] [--peer-only]
+    python benchmarks/ccd.py [--quick] [--out benchmarks/results/ccd] [--precisions float64,float32]
+                             [--tolerance-scales 0.01,1,100] [--max-iterations 10000000]
+                             [--ipctk-sample N] [--repeats 3] [--generated] [--toi] [--mesh] [--peer-only]
 
 Queries: every sample query under the data root (tests/ccd_queries.py: the shared
 ccd-sample-queries, or $TUNNELSIM_CCD_QUERIES), vertex-face and edge-edge, against the data set's
@@ -9,7 +11,10 @@ ground truth. FN = truth 1 reported as a miss, FP = truth 0 reported as a hit.
 
 Ours: ``collision.ccd.point_triangle_ccd`` / ``edge_edge_ccd`` on the whole (N, 3)-argument batch
 (best of --repeats after one warm-up call that compiles/loads the Warp kernels); time per query =
-batch time / N. ipctk: ``ipctk.tight_inclusion.point_triangle_ccd`` / ``edge_edge_ccd`` (the raw
+batch time / N. One row per precision (``float32``: the narrow phase and root solver generated in
+float32 by :mod:`kernels.variants`, positions rounded to float32 before the kernel, the rounding
+inside the timed call) and ``tolerance_scale`` (the multiplier on the coefficient and distance
+error bounds that decide a hit; 1 = the kernels' 64 u / 256 u). ipctk: ``ipctk.tight_inclusion.point_triangle_ccd`` / ``edge_edge_ccd`` (the raw
 Tight Inclusion solver, tolerance 1e-6, max_iterations ipctk's default 1e7) called once per query
 from Python (benchmarks/ipctk_peer.py); its time per query includes the Python call overhead, as
 the batched call's does. Bar: ours >= 10x faster per query than ipctk.
@@ -27,6 +32,12 @@ over that sample only).
              compute_collision_free_stepsize; our side is still a placeholder.
 --peer-only  skip our CCD (to measure ipctk before collision.ccd exists); without it a missing
              collision.ccd is an error.
+--quick      a subset of the sample queries (every true contact plus 300 random non-contacts per
+             kind), ipctk with max_iterations 1e6, tolerance scales 1 and 100, best of 1 (< 60 s
+             once the kernels are compiled; each new variant compiles in ~7 s).
+
+Writes ``<out>.md`` (the tables) and ``<out>.json`` and prints the tables (the --generated,
+--toi and --mesh sections are printed only).
 """
 
 from __future__ import annotations
@@ -39,15 +50,18 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
-sys.path.insert(0, os.path.join(HERE, "..", "tests"))
-sys.path.insert(0, HERE)
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, os.path.join(ROOT, "tests"))
+sys.path.insert(0, ROOT)  # first: benchmarks/sim.py must not shadow the sim package
 
 import ccd_queries  # noqa: E402
-import ipctk_peer  # noqa: E402
+
+from benchmarks import ipctk_peer, report  # noqa: E402
 
 SPEED_BAR = 10.0  # ours must be >= 10x faster per query than ipctk (milestone bar)
 KINDS = ("vertex-face", "edge-edge")
+DEFAULT_OUT = os.path.join(HERE, "results", "ccd")
+QUICK_NEGATIVES = 300
 
 
 def import_ours():
@@ -67,6 +81,14 @@ def import_ours():
             f"benchmarks/ccd.py: collision.ccd does not provide point_triangle_ccd and edge_edge_ccd yet ({e})"
         ) from None
     return point_triangle_ccd, edge_edge_ccd
+
+
+def ours_setting(ours, kind, precision="float64", tolerance_scale=1.0):
+    """Our batched function for ``kind`` with the precision / tolerance settings bound."""
+    fn = ours[0] if kind == "vertex-face" else ours[1]
+    if precision == "float64" and tolerance_scale == 1.0:
+        return fn
+    return lambda *a: fn(*a, precision=precision, tolerance_scale=tolerance_scale)
 
 
 def run_ours(fn, points, repeats):
@@ -121,83 +143,86 @@ def toi_report(name, toi, hit, ref):
 
 
 def sample_queries(args, ours):
-    print(f"Sample queries from {ccd_queries.queries_root()}")
-    for kind in KINDS:
-        rep = ccd_queries.representability(kind)
-        print(
-            f"  {kind}: {rep['queries']} queries, {rep['inexact_coordinates']} of {rep['coordinates']} "
-            "coordinates not exactly representable in float64"
-        )
-    print(
-        f"ipctk {ipctk_peer.ipctk.__name__} tight_inclusion: tolerance {ipctk_peer.TOLERANCE:g}, "
-        f"max_iterations {args.max_iterations:g}; ours best of {args.repeats} batched calls\n"
-    )
-    head = (
-        f"{'kind':12s} {'subset':9s} {'N':>5s} {'pos':>4s} | {'ours FN':>7s} {'FP':>4s} {'ms/query':>9s} | "
-        f"{'ipctk FN':>8s} {'FP':>4s} {'ms/query':>9s} | {'speedup':>8s}"
-    )
-    print(head)
-    print("-" * len(head))
+    """The sample-query table: FN / FP and time per query of every (precision, tolerance_scale)
+    of ours and of ipctk, per kind, split into the unit-test and erleben scenes. Returns the
+    markdown lines and the JSON data."""
+    root = ccd_queries.queries_root()
+    print(f"Sample queries from {root}")
+    settings = [(p, ts) for p in args.precisions for ts in args.tolerance_scales] if ours is not None else []
     rng = np.random.default_rng(args.seed)
-    verdicts = []
+    rows, data, verdicts, notes = [], [], [], []
     for kind in KINDS:
         qs = ccd_queries.load_queries(kind)
-        pts, truth = qs.points, qs.truth
-        scenes = qs.scenes()
+        rep = ccd_queries.representability(kind)
+        notes.append(f"{kind}: {rep['queries']} queries, {rep['inexact_coordinates']} of {rep['coordinates']} "
+                     "coordinates not exactly representable in float64")
+        use = np.arange(len(qs.truth))
+        if args.quick:
+            neg = np.flatnonzero(~qs.truth)
+            use = np.sort(np.concatenate([np.flatnonzero(qs.truth),
+                                          rng.choice(neg, min(QUICK_NEGATIVES, len(neg)), replace=False)]))
+        pts, truth, scenes = qs.points[use], qs.truth[use], qs.scenes()[use]
         n = len(truth)
-        if ours is not None:
-            o_hit, o_toi, o_s = run_ours(ours[0] if kind == "vertex-face" else ours[1], pts, args.repeats)
-        sel = np.arange(n)
-        if args.ipctk_sample and args.ipctk_sample < n:
-            sel = np.sort(rng.choice(n, args.ipctk_sample, replace=False))
-        i_hit = np.zeros(n, dtype=bool)
-        i_toi = np.full(n, np.nan)
-        i_sec = np.full(n, np.nan)
+        subsets = [("unit", scenes == "unit-tests"), ("erleben", scenes != "unit-tests"), ("all", np.ones(n, dtype=bool))]
+        results = []  # (method, precision, tolerance_scale, hit, toi, seconds per query (mean), timed mask)
+        for prec, ts in settings:
+            hit, toi, secs = run_ours(ours_setting(ours, kind, prec, ts), pts, args.repeats)
+            results.append(("ours", prec, ts, hit, toi, secs / n, np.ones(n, dtype=bool)))
         if not args.skip_ipctk:
+            sel = np.arange(n)
+            if args.ipctk_sample and args.ipctk_sample < n:
+                sel = np.sort(rng.choice(n, args.ipctk_sample, replace=False))
             r = ipctk_peer.tight_inclusion_queries(pts[sel], kind, max_iterations=args.max_iterations)
+            i_hit, i_toi, i_sec = np.zeros(n, dtype=bool), np.full(n, np.nan), np.full(n, np.nan)
             i_hit[sel], i_toi[sel], i_sec[sel] = r.hit, r.toi, r.seconds
-        timed = np.zeros(n, dtype=bool)
-        timed[sel] = not args.skip_ipctk
-        for subset, mask in (
-            ("unit", scenes == "unit-tests"),
-            ("erleben", scenes != "unit-tests"),
-            ("all", np.ones(n, dtype=bool)),
-        ):
-            if not mask.any():
-                continue
-            cells = f"{kind:12s} {subset:9s} {int(mask.sum()):5d} {int(truth[mask].sum()):4d} |"
-            if ours is not None:
-                fn_, fp_ = fn_fp(o_hit[mask], truth[mask])
-                cells += f" {fn_:7d} {fp_:4d} {fmt_ms(o_s / n)} |"  # batch time shared over the batch
-            else:
-                cells += f" {'-':>7s} {'-':>4s} {'-':>9s} |"
-            im = mask & timed
-            if im.any():
-                fn_, fp_ = fn_fp(i_hit[im], truth[im])
-                i_ms = float(np.nanmean(i_sec[im]))
-                cells += f" {fn_:8d} {fp_:4d} {fmt_ms(i_ms)} |"
-            else:
-                i_ms = float("nan")
-                cells += f" {'-':>8s} {'-':>4s} {'-':>9s} |"
-            if ours is not None and np.isfinite(i_ms):
-                cells += f" {i_ms / (o_s / n):7.1f}x"
-            print(cells)
-        if ours is not None and timed.any():
-            ratio = float(np.nanmean(i_sec[timed])) / (o_s / n)
-            verdicts.append((kind, ratio))
+            timed = np.zeros(n, dtype=bool)
+            timed[sel] = True
+            results.append(("ipctk", "float64", None, i_hit, i_toi, float(np.nanmean(i_sec)), timed))
+        ipctk_s = next((r[5] for r in results if r[0] == "ipctk"), None)
         if args.toi:
             idx = np.flatnonzero(truth)
-            ref = exact_tois(qs, idx)
-            if ours is not None:
-                print("    " + toi_report("ours ", o_toi[idx], o_hit[idx], ref))
-            if timed[idx].any():
+            ref = exact_tois(qs, use[idx])  # exact earliest contacts of the true hits
+        for method, prec, ts, hit, toi, per_query, timed in results:
+            cells = [kind, method, prec, ts if ts is not None else "tol 1e-6", int(timed.sum()), int(truth[timed].sum())]
+            rec = {"kind": kind, "method": method, "precision": prec, "tolerance_scale": ts,
+                   "queries": int(timed.sum()), "positives": int(truth[timed].sum())}
+            for name, mask in subsets:
+                m = mask & timed
+                fn_, fp_ = fn_fp(hit[m], truth[m])
+                cells += [fn_, fp_]
+                rec[f"fn_{name}"], rec[f"fp_{name}"] = fn_, fp_
+            speedup = ipctk_s / per_query if (ipctk_s is not None and method == "ours") else None
+            cells += [per_query * 1e6, speedup]
+            rec["us_per_query"], rec["ipctk_over_ours"] = per_query * 1e6, speedup
+            rows.append(cells)
+            data.append(rec)
+            if method == "ours" and prec == "float64" and ts == 1.0 and speedup is not None:
+                verdicts.append((kind, speedup))
+            if args.toi:
+                label = f"{method} {prec} ts={ts}" if method == "ours" else "ipctk"
                 j = timed[idx]
-                print("    " + toi_report("ipctk", i_toi[idx][j], i_hit[idx][j], ref[j]))
-    if verdicts:
-        print()
-        for kind, ratio in verdicts:
-            ok = ratio >= SPEED_BAR
-            print(f"speed bar {kind}: ours {ratio:.1f}x faster per query than ipctk (bar {SPEED_BAR:g}x: {'met' if ok else 'NOT met'})")
+                notes.append(f"{kind} " + toi_report(label, toi[idx][j], hit[idx][j], ref[j]))
+    subset_note = (f"a subset: every true contact plus {QUICK_NEGATIVES} random non-contacts per kind (seed {args.seed})"
+                   if args.quick else "all queries")
+    lines = [
+        f"## Sample queries ({subset_note})",
+        "",
+        f"Data: {root}. FN = truth 1 reported as a miss, FP = truth 0 reported as a hit (truth of the exact "
+        "rationals; float32 rounds the positions first). ipctk: Tight Inclusion, tolerance "
+        f"{ipctk_peer.TOLERANCE:g}, max_iterations {args.max_iterations:g}, one Python call per query; ours: "
+        f"best of {args.repeats} batched calls, time per query = batch time / N (one thread). "
+        "*ts*: tolerance_scale (multiplier on the 64 u / 256 u error bounds).",
+        "",
+        *report.table(["kind", "method", "precision", "ts", "N", "pos", "FN unit", "FP unit", "FN erleben",
+                       "FP erleben", "FN", "FP", "µs/query", "ipctk / ours"], rows),
+        "",
+        *[f"- {x}" for x in notes],
+        "",
+    ]
+    for kind, ratio in verdicts:
+        lines.append(f"Speed bar {kind}: ours (float64) {ratio:.1f}x faster per query than ipctk "
+                     f"(bar {SPEED_BAR:g}x: {'met' if ratio >= SPEED_BAR else 'NOT met'}).")
+    return lines + [""], {"subset": subset_note, "rows": data}
 
 
 def generated_queries(args, ours):
@@ -218,7 +243,7 @@ def generated_queries(args, ours):
             cells = f"{kind:12s} {name:6s} {len(pts):5d} |"
             results = []
             if ours is not None:
-                h, t, _ = run_ours(ours[0] if kind == "vertex-face" else ours[1], pts, 1)
+                h, t, _ = run_ours(ours_setting(ours, kind), pts, 1)
                 results.append(("ours", h, t))
             else:
                 cells += f" {'-':>10s} {'-':>10s} |"
@@ -311,12 +336,17 @@ def mesh_level(args, ours):
         )
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--max-iterations", type=int, default=ipctk_peer.MAX_ITERATIONS, help="ipctk max_iterations")
+    ap.add_argument("--max-iterations", type=int, default=None,
+                    help=f"ipctk max_iterations (default {ipctk_peer.MAX_ITERATIONS:g}; --quick: 1e6)")
     ap.add_argument("--ipctk-sample", type=int, default=0, help="time ipctk on a random N queries per kind (0: all)")
-    ap.add_argument("--repeats", type=int, default=3, help="best of this many batched calls (ours)")
+    ap.add_argument("--repeats", type=int, default=None, help="best of this many batched calls (ours; default 3, --quick 1)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--precisions", default="float64,float32", help="comma-separated: float64,float32")
+    ap.add_argument("--tolerance-scales", default=None, help="comma-separated tolerance_scale values (default 0.01,1,100; --quick 1,100)")
+    ap.add_argument("--quick", action="store_true", help="a subset of the queries, ipctk at 1e6 iterations")
+    ap.add_argument("--out", default=DEFAULT_OUT, help="output prefix: writes <out>.md and <out>.json")
     ap.add_argument("--generated", action="store_true", help="also the exact-by-construction queries")
     ap.add_argument("--n-generated", type=int, default=3, help="instances per generated case")
     ap.add_argument("--toi", action="store_true", help="toi error against the exact contact time")
@@ -324,16 +354,38 @@ def main():
     ap.add_argument("--mesh-n", type=int, default=32, help="cloth grid resolution for --mesh")
     ap.add_argument("--peer-only", action="store_true", help="ipctk only (before collision.ccd exists)")
     ap.add_argument("--skip-ipctk", action="store_true", help="ours only")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.max_iterations is None:
+        args.max_iterations = 1_000_000 if args.quick else ipctk_peer.MAX_ITERATIONS
+    if args.repeats is None:
+        args.repeats = 1 if args.quick else 3
+    if args.tolerance_scales is None:
+        args.tolerance_scales = "1,100" if args.quick else "0.01,1,100"
+    args.precisions = [x.strip() for x in args.precisions.split(",") if x.strip()]
+    for prec in args.precisions:
+        if prec not in ("float64", "float32"):
+            ap.error(f"--precisions: unknown precision {prec!r}")
+    try:
+        args.tolerance_scales = [float(x) for x in args.tolerance_scales.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--tolerance-scales: expected comma-separated numbers, got {args.tolerance_scales!r}")
+    if any(not (np.isfinite(x) and x > 0) for x in args.tolerance_scales):
+        ap.error("--tolerance-scales: every value must be positive and finite")
     ipctk_peer.quiet()
     ours = None if args.peer_only else import_ours()
     t0 = time.perf_counter()
-    sample_queries(args, ours)
+    lines, sample = sample_queries(args, ours)
     if args.generated:
         generated_queries(args, ours)
     if args.mesh:
         mesh_level(args, ours)
-    print(f"\ntotal {time.perf_counter() - t0:.1f} s")
+    lines.append(f"Total {time.perf_counter() - t0:.1f} s.")
+    data = {"settings": {"quick": args.quick, "precisions": args.precisions, "tolerance_scales": args.tolerance_scales,
+                         "ipctk_max_iterations": args.max_iterations, "repeats": args.repeats, "seed": args.seed},
+            "sample_queries": sample}
+    report.write(args.out, "Narrow-phase CCD on the sample queries: precision and tolerance against Tight Inclusion",
+                 lines, data)
+    return data
 
 
 if __name__ == "__main__":

@@ -5,6 +5,13 @@ t2_t1)`` and edge-edge ``(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1
 argument is an (N, 3) array of positions [m] (a single (3,) point is accepted as N = 1). The
 motion over the step is linear, ``x(t) = x_t0 + t (x_t1 - x_t0)`` with ``t`` in ``[0, 1]``.
 
+:func:`narrow_phase`, :func:`point_triangle_ccd` and :func:`edge_edge_ccd` take
+``precision="float32"`` (the same narrow phase and root solver generated in float32 by
+:mod:`kernels.variants`; positions are rounded to float32 before the kernel, times returned as
+float64), ``tolerance_scale`` (a multiplier on the error bounds of the cubic's coefficients and of
+the distances that decide a hit; default 1) and the root solver's knobs ``max_iterations`` /
+``tolerance`` (see :func:`collision.roots.solve_cubic`). The defaults run the original kernels.
+
 Example:
     >>> import numpy as np
     >>> from collision.ccd import point_triangle_ccd
@@ -22,6 +29,7 @@ import warp as wp
 from collision.buffers import RecordedLaunches, host, upload
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
+from kernels import variants as _variants
 
 __all__ = ["CandidateNarrowPhase", "MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
 
@@ -57,7 +65,26 @@ def _stack(args, names) -> np.ndarray:
     return np.ascontiguousarray(np.stack(arrays, axis=1))
 
 
-def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0):
+_VARIANTS: dict = {}
+
+
+def _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance):
+    """:mod:`kernels.ccd` for the defaults, else its generated variant (cached here)."""
+    if precision == "float64" and tolerance_scale == 1.0 and max_iterations is None and tolerance is None:
+        return _k
+    key = (precision, tolerance_scale, max_iterations, tolerance,
+           type(tolerance_scale), type(max_iterations), type(tolerance))  # True != 1 here
+    mod = _VARIANTS.get(key)
+    if mod is None:
+        init_warp()
+        mod = _variants.kernel_variant(precision, max_iterations=max_iterations, tolerance=tolerance,
+                                       tolerance_scale=tolerance_scale).ccd
+        _VARIANTS[key] = mod
+    return mod
+
+
+def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, precision: str = "float64",
+                 tolerance_scale: float = 1.0, max_iterations=None, tolerance=None):
     """Batched narrow phase on stacked queries.
 
     Args:
@@ -65,12 +92,23 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0):
         queries: (N, 8, 3) float64: the four points at the start (rows 0-3, ipctk's order) and at
             the end (rows 4-7) of the step.
         thickness: minimum separation [m] (>= 0).
+        precision: ``"float64"`` or ``"float32"`` (queries and thickness rounded to float32, the
+            whole narrow phase and its root solver computed in float32).
+        tolerance_scale: multiplier (> 0) of the coefficient and distance error bounds
+            (``COEFFICIENT_ERROR_FACTOR``, ``DISTANCE_ERROR_FACTOR``): below 1 tighter (fewer
+            false positives, false negatives possible), above 1 looser.
+        max_iterations, tolerance: the root solver's Newton-bisection cap and relative step
+            tolerance (None: 256 and 2 ulp of the precision).
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) fraction of the step, inf where no hit, source: int32
         (N,) where the time came from: 0 start, 1-3 cubic root slot, 4 collinear, 5 advancement,
         -1 none).
+
+    Raises:
+        ValueError: a bad thickness or knob (named), or (float32) positions that overflow float32.
     """
+    k = _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
     t = float(thickness)
     if not np.isfinite(t) or t < 0.0:
         raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
@@ -79,19 +117,31 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0):
     hit = np.zeros(n, dtype=np.int32)
     toi = np.full(n, np.inf)
     source = np.full(n, -1, dtype=np.int32)
+    scalar, real = wp.float64, np.float64
+    if k is not _k and k.mat83d._wp_scalar_type_ is wp.float32:
+        scalar, real = wp.float32, np.float32
+        with np.errstate(over="ignore"):
+            queries = np.ascontiguousarray(queries, dtype=np.float32)
+        if not np.isfinite(queries).all():
+            raise ValueError("queries: positions overflow float32 (precision='float32')")
+        if not np.isfinite(np.float32(t)):
+            raise ValueError(f"thickness overflows float32, got {thickness!r}")
+        toi = np.full(n, np.inf, dtype=np.float32)
     if n:
         wp.launch(
-            _k.ccd_kernel,
+            k.ccd_kernel,
             dim=n,
-            inputs=[kind, wp.array(queries, dtype=_k.mat83d, device=_DEVICE, copy=False), wp.float64(t)],
+            inputs=[kind, wp.array(queries, dtype=k.mat83d, device=_DEVICE, copy=False), scalar(t)],
             outputs=[
                 wp.array(hit, dtype=wp.int32, device=_DEVICE, copy=False),
-                wp.array(toi, dtype=wp.float64, device=_DEVICE, copy=False),
+                wp.array(toi, dtype=scalar, device=_DEVICE, copy=False),
                 wp.array(source, dtype=wp.int32, device=_DEVICE, copy=False),
             ],
             device=_DEVICE,
         )
         wp.synchronize_device(_DEVICE)
+    if real is np.float32:
+        toi = toi.astype(np.float64)
     return hit.astype(bool), toi, source
 
 
@@ -245,38 +295,46 @@ class CandidateNarrowPhase:
         return kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order]
 
 
-def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0):
+def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0, *,
+                       precision: str = "float64", tolerance_scale: float = 1.0, max_iterations=None, tolerance=None):
     """Does the vertex hit the triangle during the step, and when first?
 
     Args:
         p_t0, t0_t0, t1_t0, t2_t0: vertex and triangle corners at the start [m], each (N, 3).
         p_t1, t0_t1, t1_t1, t2_t1: the same at the end of the step [m].
         thickness: minimum separation [m] (>= 0); contact when the distance reaches it.
+        precision, tolerance_scale, max_iterations, tolerance: see :func:`narrow_phase`
+            (defaults: the float64 kernels as written).
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) earliest time of impact in [0, 1], ``inf`` where no hit).
 
     Raises:
-        ValueError: wrong shapes, mismatched lengths, non-finite positions or a bad thickness.
+        ValueError: wrong shapes, mismatched lengths, non-finite positions, a bad thickness or
+            knob (named).
     """
     queries = _stack((p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1), _VF_NAMES)
-    hit, toi, _ = narrow_phase(0, queries, thickness)
+    hit, toi, _ = narrow_phase(0, queries, thickness, precision=precision, tolerance_scale=tolerance_scale,
+                               max_iterations=max_iterations, tolerance=tolerance)
     return hit, toi
 
 
-def edge_edge_ccd(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1, thickness: float = 0.0):
+def edge_edge_ccd(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1, thickness: float = 0.0, *,
+                  precision: str = "float64", tolerance_scale: float = 1.0, max_iterations=None, tolerance=None):
     """Do the two edges hit during the step, and when first?
 
     Args:
         ea0_t0, ea1_t0, eb0_t0, eb1_t0: endpoints of edges a and b at the start [m], each (N, 3).
         ea0_t1, ea1_t1, eb0_t1, eb1_t1: the same at the end of the step [m].
         thickness: minimum separation [m] (>= 0).
+        precision, tolerance_scale, max_iterations, tolerance: see :func:`narrow_phase`.
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) in [0, 1], ``inf`` where no hit).
     """
     queries = _stack((ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1), _EE_NAMES)
-    hit, toi, _ = narrow_phase(1, queries, thickness)
+    hit, toi, _ = narrow_phase(1, queries, thickness, precision=precision, tolerance_scale=tolerance_scale,
+                               max_iterations=max_iterations, tolerance=tolerance)
     return hit, toi
 
 

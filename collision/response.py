@@ -308,6 +308,7 @@ class ImpulseCollisionHandler:
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
+        self.last_body_particles = np.zeros(0, dtype=np.int64)
         self.failsafe_count = 0
         self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
         self.untaped_substeps = 0
@@ -550,10 +551,24 @@ class ImpulseCollisionHandler:
             else:
                 setattr(self, c, v)
 
+    def _note_body_contacts(self, cs) -> None:
+        """Records the particles that share a contact with a rigid body's vertex in this call
+        (:attr:`last_body_particles`)."""
+        if not len(cs):
+            return
+        types = self.vertex_type[cs.idx]
+        rows = (types == _BODY).any(axis=1)
+        if rows.any():
+            idx = cs.idx[rows][types[rows] == _PARTICLE]
+            self.last_body_particles = np.unique(idx)
+
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
+        # particles in contact with a rigid body in this call: the implicit integrator must not
+        # prescribe their motion in a re-solve (the body would not feel the reaction)
+        self.last_body_particles = np.zeros(0, dtype=np.int64)
         if self.broad_phase is None:
             return None
         if self.differentiable:
@@ -704,6 +719,7 @@ class ImpulseCollisionHandler:
             self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
             self.last_normals = cs.n[active]
             self.last_times = cs.toi[active]
+        self._note_body_contacts(cs)
         if len(cs) == 0 and not failsafe:
             return None
         # the result in the handler's own State (reused: the integrator copies it out)
@@ -925,6 +941,7 @@ class ImpulseCollisionHandler:
             self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
             self.last_normals = cs.n[active]
             self.last_times = cs.toi[active]
+        self._note_body_contacts(cs)
         return State(
             particle_q=X1p if P else state_pred.particle_q,
             particle_qd=st["vp"] if P else state_pred.particle_qd,

@@ -4,6 +4,11 @@ Every function accepts coefficients with any number of leading batch dimensions 
 arrays with the same leading shape. There is one implementation of the solver (Warp, float64);
 these functions only validate input, launch its kernels and reshape the output.
 
+The numpy functions take ``precision="float32"`` (the same solver generated in float32 by
+:mod:`kernels.variants`: coefficients rounded to float32, computed in float32, results returned
+as float64 / complex128 for comparison) and the knobs ``max_iterations`` / ``tolerance`` of its
+Newton-bisection (``None``: the kernels' 256 and 2 ulp). The defaults run the original kernels.
+
 Example:
     >>> import numpy as np
     >>> from collision.roots import solve_cubic
@@ -17,14 +22,22 @@ import numpy as np
 import warp as wp
 
 from kernels import roots as _k
+from kernels import variants as _variants
 
 DEFAULT_T_MAX = _k.DEFAULT_T_MAX
 DEFAULT_MAX_DERIVATIVE = _k.DEFAULT_MAX_DERIVATIVE
+PRECISIONS = _variants.PRECISIONS
+"""Precisions of the numpy API: ``"float64"`` (default) and ``"float32"``."""
+FLOAT32_T_MAX = _variants.T_MAX["float32"]
+"""In float32 ``t_max`` is capped at this (float32(1e18) = 9.999999843067494e17: ``t_max^2`` must
+stay a finite float32); a t_max below it is rounded to float32."""
 
 __all__ = [
     "DEFAULT_MAX_DERIVATIVE",
     "DEFAULT_T_MAX",
     "DERIVATIVES",
+    "FLOAT32_T_MAX",
+    "PRECISIONS",
     "cubic_root_jacobian",
     "cubic_roots",
     "orthogonal_clamped_jacobian",
@@ -87,22 +100,58 @@ def _check_positive(value: float, name: str) -> float:
     return v
 
 
-def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list):
+def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list, scalar=wp.float64):
     """Launch ``kernel`` over the rows of ``coefficients``; outputs come back as numpy arrays.
 
-    On the CPU the numpy buffers are shared with Warp (no copies in or out).
+    On the CPU the numpy buffers are shared with Warp (no copies in or out). ``scalar`` is the
+    kernels' float type (``wp.float32`` for a float32 variant: ``coefficients`` must then be
+    float32 and the outputs are float32).
     """
     init_warp()
     flat = np.ascontiguousarray(coefficients.reshape(-1, coefficients.shape[-1]))
     count = flat.shape[0]
-    results = [np.empty((count,) + tuple(dtype._shape_), dtype=np.float64) for dtype in outputs]
+    np_dtype = np.float64 if scalar is wp.float64 else np.float32
+    results = [np.empty((count,) + tuple(dtype._shape_), dtype=np_dtype) for dtype in outputs]
     if count == 0:
         return results
     coef = wp.array(flat, dtype=coef_type, device=_DEVICE, copy=False)
     outs = [wp.array(r, dtype=dtype, device=_DEVICE, copy=False) for r, dtype in zip(results, outputs)]
-    wp.launch(kernel, dim=count, inputs=[coef, *[wp.float64(s) for s in scalars]], outputs=outs, device=_DEVICE)
+    wp.launch(kernel, dim=count, inputs=[coef, *[scalar(s) for s in scalars]], outputs=outs, device=_DEVICE)
     wp.synchronize_device(_DEVICE)
     return results
+
+
+_VARIANTS: dict = {}
+
+
+def _kernels(precision, max_iterations, tolerance):
+    """The roots kernel module for the settings: :mod:`kernels.roots` itself for the defaults,
+    else the generated variant (:func:`kernels.variants.kernel_variant`, cached here)."""
+    if precision == "float64" and max_iterations is None and tolerance is None:
+        return _k
+    key = (precision, max_iterations, tolerance, type(max_iterations), type(tolerance))  # True != 1 here
+    mod = _VARIANTS.get(key)
+    if mod is None:
+        init_warp()
+        mod = _variants.kernel_variant(precision, max_iterations=max_iterations, tolerance=tolerance).roots
+        _VARIANTS[key] = mod
+    return mod
+
+
+def _variant_inputs(k, arr: np.ndarray, t_max: float, name: str = "p"):
+    """(coefficients, t_max, vec3 type, vec4 type, float type) for launching the kernels of
+    module ``k``: for a float32 variant the coefficients are rounded to float32 (non-finite after
+    rounding is a ValueError naming the entries) and ``t_max`` is capped at :data:`FLOAT32_T_MAX`."""
+    if k.f64 is wp.float64:
+        return arr, t_max, wp.vec3d, wp.vec4d, wp.float64
+    with np.errstate(over="ignore"):
+        arr32 = arr.astype(np.float32)
+    bad = ~np.isfinite(arr32)
+    if bad.any():
+        idx = np.argwhere(bad)
+        shown = ", ".join(f"{name}[{', '.join(map(str, i))}]={arr[tuple(i)]!r}" for i in idx[:5])
+        raise ValueError(f"{name}: coefficients overflow float32 (precision='float32'): {shown}")
+    return arr32, min(t_max, FLOAT32_T_MAX), wp.vec3f, wp.vec4f, wp.float32
 
 
 def _to_complex(flat_roots: np.ndarray, lead_shape: tuple, slots: int) -> np.ndarray:
@@ -110,12 +159,21 @@ def _to_complex(flat_roots: np.ndarray, lead_shape: tuple, slots: int) -> np.nda
     return flat_roots.reshape(-1, 2 * slots).view(np.complex128).reshape(lead_shape + (slots,))
 
 
-def solve_quadratic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
+def solve_quadratic(p, t_max: float = DEFAULT_T_MAX, *, precision: str = "float64", max_iterations=None,
+                    tolerance=None) -> np.ndarray:
     """All roots of ``a t^2 + b t + c``.
 
     Args:
         p: coefficients ``[a, b, c]``, shape (..., 3), finite.
-        t_max: magnitude at which escaping roots are clamped (the paper's 1e150).
+        t_max: magnitude at which escaping roots are clamped (the paper's 1e150; capped at
+            :data:`FLOAT32_T_MAX` in float32).
+        precision: ``"float64"`` or ``"float32"`` (coefficients rounded to float32 and solved in
+            float32 arithmetic by the generated variant of the same kernels; results converted
+            to complex128).
+        max_iterations: Newton-bisection iteration cap (positive int; None: 256). The quadratic
+            is closed form, so it has no effect here; accepted for symmetry with :func:`solve_cubic`.
+        tolerance: Newton relative step tolerance (positive; None: 2 ulp of the precision); no
+            effect on the quadratic either.
 
     Returns:
         complex128 array (..., 2): slots ``(t-, t+)`` with ``t+ = (-b + sqrt(b^2 - 4ac)) / 2a``;
@@ -123,20 +181,33 @@ def solve_quadratic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
         pseudo-sign of ``a``; ``a = b = c = 0`` gives a double root at 0.
 
     Raises:
-        ValueError: wrong shape or non-finite coefficients (the message names the entries).
+        ValueError: wrong shape or non-finite coefficients (the message names the entries;
+            float32: also coefficients that overflow float32), or a bad ``precision`` /
+            ``max_iterations`` / ``tolerance`` (named).
     """
+    k = _kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 3)
     t_max = _check_positive(t_max, "t_max")
-    (roots,) = _launch(_k.solve_quadratic_kernel, arr, wp.vec3d, [t_max], [wp.vec4d])
-    return _to_complex(roots, arr.shape[:-1], 2)
+    if k is _k:
+        (roots,) = _launch(_k.solve_quadratic_kernel, arr, wp.vec3d, [t_max], [wp.vec4d])
+        return _to_complex(roots, arr.shape[:-1], 2)
+    arr_k, t_max, v3, v4, scalar = _variant_inputs(k, arr, t_max)
+    (roots,) = _launch(k.solve_quadratic_kernel, arr_k, v3, [t_max], [v4], scalar)
+    return _to_complex(roots.astype(np.float64), arr.shape[:-1], 2)
 
 
-def solve_cubic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
+def solve_cubic(p, t_max: float = DEFAULT_T_MAX, *, precision: str = "float64", max_iterations=None,
+                tolerance=None) -> np.ndarray:
     """All roots of ``q t^3 + a t^2 + b t + c``.
 
     Args:
         p: coefficients ``[q, a, b, c]``, shape (..., 4), finite.
-        t_max: magnitude at which escaping roots are clamped.
+        t_max: magnitude at which escaping roots are clamped (capped at :data:`FLOAT32_T_MAX` in
+            float32).
+        precision: ``"float64"`` or ``"float32"`` (see :func:`solve_quadratic`).
+        max_iterations: Newton-bisection iteration cap per real root (positive int; None: 256).
+        tolerance: relative Newton step below which a root is accepted (positive; None: 2 ulp of
+            the precision, 2^-51 / 2^-22).
 
     Returns:
         complex128 array (..., 3): slots ``(t-, tM, t+)``. Three real roots ascend; a single real
@@ -145,24 +216,39 @@ def solve_cubic(p, t_max: float = DEFAULT_T_MAX) -> np.ndarray:
         escaping root is ``-sign(a) t_max``; all zero: triple root 0.
 
     Raises:
-        ValueError: wrong shape or non-finite coefficients.
+        ValueError: wrong shape or non-finite coefficients, or a bad knob (named).
     """
+    k = _kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 4)
     t_max = _check_positive(t_max, "t_max")
-    (roots,) = _launch(_k.solve_cubic_kernel, arr, wp.vec4d, [t_max], [_k.vec6d])
-    return _to_complex(roots, arr.shape[:-1], 3)
+    if k is _k:
+        (roots,) = _launch(_k.solve_cubic_kernel, arr, wp.vec4d, [t_max], [_k.vec6d])
+        return _to_complex(roots, arr.shape[:-1], 3)
+    arr_k, t_max, _, v4, scalar = _variant_inputs(k, arr, t_max)
+    (roots,) = _launch(k.solve_cubic_kernel, arr_k, v4, [t_max], [k.vec6d], scalar)
+    return _to_complex(roots.astype(np.float64), arr.shape[:-1], 3)
 
 
-def _quadratic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float):
-    roots, jac = _launch(
-        _k.quadratic_jacobian_kernel, arr, wp.vec3d, [t_max, max_derivative], [wp.vec4d, _k.mat43d]
-    )
+def _quadratic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float, k=_k):
+    if k is not _k:
+        arr_k, t_max, v3, v4, scalar = _variant_inputs(k, arr, t_max)
+        roots, jac = _launch(k.quadratic_jacobian_kernel, arr_k, v3, [t_max, max_derivative], [v4, k.mat43d], scalar)
+        roots, jac = roots.astype(np.float64), jac.astype(np.float64)
+    else:
+        roots, jac = _launch(
+            _k.quadratic_jacobian_kernel, arr, wp.vec3d, [t_max, max_derivative], [wp.vec4d, _k.mat43d]
+        )
     lead = arr.shape[:-1]
     return roots.reshape(lead + (2, 2)), jac.reshape(lead + (2, 2, 3))
 
 
-def _cubic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float):
-    roots, jac = _launch(_k.cubic_jacobian_kernel, arr, wp.vec4d, [t_max, max_derivative], [_k.vec6d, _k.mat64d])
+def _cubic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float, k=_k):
+    if k is not _k:
+        arr_k, t_max, _, v4, scalar = _variant_inputs(k, arr, t_max)
+        roots, jac = _launch(k.cubic_jacobian_kernel, arr_k, v4, [t_max, max_derivative], [k.vec6d, k.mat64d], scalar)
+        roots, jac = roots.astype(np.float64), jac.astype(np.float64)
+    else:
+        roots, jac = _launch(_k.cubic_jacobian_kernel, arr, wp.vec4d, [t_max, max_derivative], [_k.vec6d, _k.mat64d])
     lead = arr.shape[:-1]
     return roots.reshape(lead + (3, 2)), jac.reshape(lead + (3, 2, 4))
 
@@ -266,7 +352,8 @@ def orthogonal_clamped_jacobian(p, roots, jacobian, max_derivative: float = DEFA
 
 
 def quadratic_root_jacobian(
-    p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE
+    p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE, *, precision: str = "float64",
+    max_iterations=None, tolerance=None,
 ) -> np.ndarray:
     """Mollified Jacobian of both quadratic roots (eq. ``ourapproachderivctilde``).
 
@@ -274,30 +361,36 @@ def quadratic_root_jacobian(
         p: ``[a, b, c]``, shape (..., 3).
         t_max: root clamp.
         max_derivative: ``M`` of the robust division.
+        precision, max_iterations, tolerance: as for :func:`solve_quadratic` (float32: computed in
+            float32, returned as float64).
 
     Returns:
         float64 (..., 2, 2, 3): ``[slot (t-, t+), part (Re, Im), coefficient (a, b, c)]``.
     """
+    k = _kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 3)
     _, jac = _quadratic_jacobian_raw(
-        arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative")
+        arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"), k
     )
     return jac
 
 
-def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE) -> np.ndarray:
+def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float = DEFAULT_MAX_DERIVATIVE, *,
+                        precision: str = "float64", max_iterations=None, tolerance=None) -> np.ndarray:
     """Mollified Jacobian of the three cubic roots w.r.t. the caller's coefficients.
 
     Args:
         p: ``[q, a, b, c]``, shape (..., 4).
         t_max: root clamp.
         max_derivative: ``M`` of the robust division.
+        precision, max_iterations, tolerance: as for :func:`solve_cubic`.
 
     Returns:
         float64 (..., 3, 2, 4): ``[slot (t-, tM, t+), part (Re, Im), coefficient (q, a, b, c)]``.
     """
+    k = _kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 4)
-    _, jac = _cubic_jacobian_raw(arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"))
+    _, jac = _cubic_jacobian_raw(arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"), k)
     return jac
 
 

@@ -138,15 +138,17 @@ def collided_particles(
     v_after: wp.array(dtype=wp.vec3d),
     inv_mass: wp.array(dtype=wp.float64),
     fixed_before: wp.array(dtype=wp.int32),
+    excluded: wp.array(dtype=wp.int32),
     fixed: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
     """``fixed_i = 1`` for the ``fixed_before`` particles and every free particle the collision
-    stage moved (:func:`changed`); the number of particles added goes to ``count[0]`` (a
-    decision: never taped)."""
+    stage moved (:func:`changed`) unless ``excluded_i`` (it touched a rigid body, which must
+    feel the reaction: only the collision stage itself moves such a particle); the number of
+    particles added goes to ``count[0]`` (a decision: never taped)."""
     i = wp.tid()
     fixed[i] = fixed_before[i]
-    if inv_mass[i] == f64(0.0) or fixed_before[i] != 0:
+    if inv_mass[i] == f64(0.0) or fixed_before[i] != 0 or excluded[i] != 0:
         return
     if changed(x_pred[i], v_pred[i], x_after[i], v_after[i]):
         fixed[i] = 1

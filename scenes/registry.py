@@ -5,7 +5,7 @@ A scene is a module that defines:
 * ``NAME: str`` and ``DESCRIPTION: str`` (one line, shown by ``--list``);
 * ``add_arguments(parser)``: adds its own options to an ``argparse`` parser that already has the
   common ``--out``, ``--seed`` and ``--precision`` (and ``--steps`` if ``SUPPORTS_STEPS``);
-* optionally ``PRECISIONS`` (default both ``float64`` and ``float32``; the CLI rejects others)
+* optionally ``PRECISIONS`` (default ``("float64",)``; the CLI offers exactly these)
   and ``SUPPORTS_STEPS`` (default ``False``);
 * ``run(args, log) -> dict``: runs, logs to ``log`` (an open :class:`sim.logging.RerunLogger`) and
   returns the JSON-serialisable summary that the CLI prints as its last line.

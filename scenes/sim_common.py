@@ -44,6 +44,9 @@ DEFAULT_STEPS = 120
 DEFAULT_DT = 1.0 / 60.0
 DEFAULT_SUBSTEPS = 8
 DEFAULT_DEVICE = "cpu"
+DEFAULT_COLLISION_ROUNDS = 8
+"""CCD + impulse rounds per substep (:class:`collision.response.ImpulseCollisionHandler`'s
+``max_iterations``); a substep still colliding after them falls back to rigid impact zones."""
 RESPONSES = ("gauss-seidel", "replayed")
 DEFAULT_RESPONSE = "gauss-seidel"
 """Collision response of the scenes: projected Gauss-Seidel impulses, or the replayed exact solve
@@ -90,6 +93,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-strain-step", type=non_negative_float, default=None,
                         help="implicit integrator: halve a substep whose springs' strain grows by more than this "
                              "(up to 4 times; 0 = never; default 0.1)")
+    parser.add_argument("--thickness", type=non_negative_float, default=None,
+                        help="contact thickness [m]: the separation the proximity pass keeps between primitives "
+                             "(default: the scene's; 0 = 1e-4 x the diagonal of the collidable vertices' box)")
+    parser.add_argument("--collision-rounds", type=positive_int, default=DEFAULT_COLLISION_ROUNDS,
+                        help="CCD + impulse rounds per substep before the rigid impact-zone fail-safe "
+                             f"(>= 1; default {DEFAULT_COLLISION_ROUNDS})")
     parser.add_argument("--contact-passes", type=non_negative_int, default=None,
                         help="implicit integrator: constrained re-solves per substep for the particles in contact "
                              "(0 = collision response after the solve only; default 1)")
@@ -100,7 +109,8 @@ def default_args(**overrides: Any) -> argparse.Namespace:
     ns = argparse.Namespace(seed=0, precision="float64", steps=None, dt=DEFAULT_DT,
                             substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0,
                             response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None,
-                            max_strain_step=None, contact_passes=None)
+                            max_strain_step=None, contact_passes=None, thickness=None,
+                            collision_rounds=DEFAULT_COLLISION_ROUNDS)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -113,6 +123,9 @@ def build_model(build: BuildFn, args: argparse.Namespace):
 
     builder = ModelBuilder()
     build(builder, args)
+    thickness = getattr(args, "thickness", None)
+    if thickness is not None:  # the CLI's --thickness overrides the scene's own
+        builder.thickness = thickness
     model = builder.finalize(getattr(args, "device", DEFAULT_DEVICE))
     scale = float(getattr(args, "scale", 1.0))
     return model if scale == 1.0 else model.scaled(scale)
@@ -270,7 +283,8 @@ def simulate(
         options[key] = (value or None) if key == "max_strain_step" else value
     integrator = make_integrator(model, kind, **options)
     handler = ImpulseCollisionHandler(
-        model, differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
+        model, max_iterations=int(getattr(args, "collision_rounds", DEFAULT_COLLISION_ROUNDS)),
+        differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
     gatherer = ContactGatherer(handler)
     integrator.collision_handler = gatherer
     checker = PenetrationChecker(model)
@@ -356,6 +370,9 @@ def simulate(
         "dt": dt,
         "substeps": substeps,
         "integrator": kind,
+        "response": getattr(args, "response", DEFAULT_RESPONSE),
+        "thickness": float(model.thickness),
+        "collision_rounds": int(handler.max_iterations),
         "cg_iterations": int(getattr(integrator, "total_iterations", 0)),
         "refined_substeps": int(getattr(integrator, "refinements", 0)),
         "contact_constrained": int(getattr(integrator, "total_constrained", 0)),

@@ -41,7 +41,8 @@ from typing import Any
 import numpy as np
 
 from scenes.optim import GuardedAdam, reported_iterate, run_cma
-from scenes.registry import int_at_least
+from collision.roots import DEFAULT_MAX_DERIVATIVE
+from scenes.registry import int_at_least, positive_float
 
 NAME = "tunnel"
 DESCRIPTION = "Optimise a particle's initial velocity from a miss to a hit of a spinning tetrahedron (lifted events)"
@@ -96,7 +97,7 @@ class Problem:
     hit_margin: float = HIT_MARGIN  # barycentric margin of the hit phase's barrier (below the target's own)
 
 
-def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, collisions=True):
+def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, collisions=True, max_derivative=None):
     """(initial velocity tensor, rollout result); ``v`` a (3,) array, or a (1, 3) tensor used as is.
     ``collisions=False``: the *ghost* rollout (the particle passes through the tetrahedron; the
     body alone moves as in any miss)."""
@@ -110,6 +111,8 @@ def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, c
     else:
         x = torch.tensor(np.asarray(v, dtype=np.float64)[None], dtype=torch.float64, requires_grad=grad)
     kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
+    if max_derivative is not None and not unmollified:
+        kw["max_derivative"] = float(max_derivative)
     return x, rollout(model, STEPS, DT, 1, particle_qd=x, events=events, collisions=collisions, **kw)
 
 
@@ -297,16 +300,24 @@ def _hit_loss(problem: Problem, res, t_hit, step: int):
     return loss + barrier
 
 
-def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None) -> dict[str, Any]:
+def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None,
+             max_derivative: float | None = None) -> dict[str, Any]:
     """Adam on the initial velocity (see the module docstring). ``method``: "proposed",
-    "baseline" or "cma" (CMA-ES on :func:`task_loss` with ``iters`` rollouts). Returns the
-    figures of the run and its history (one entry per iteration)."""
+    "baseline" or "cma" (CMA-ES on :func:`task_loss` with ``iters`` rollouts).
+    ``max_derivative``: ``M`` of the proposed method's mollified derivatives (default the
+    rollout's, 1000; the baseline is unmollified whatever it is). Returns the figures of the run
+    and its history (one entry per iteration)."""
+    import math
+
     import torch
 
     from sim.events import BranchTracker
 
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if max_derivative is not None and not (isinstance(max_derivative, (int, float)) and math.isfinite(max_derivative)
+                                           and max_derivative > 0):
+        raise ValueError(f"max_derivative must be a finite number > 0, got {max_derivative!r}")
     if method == "cma":
         return _optimise_cma(problem, iters)
     unmollified = method == "baseline"
@@ -326,19 +337,20 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         if not opt.guarded:
             # phase one: the ghost's lifted event (the particle passes through the body, so the
             # event stays the free flight's whatever the real particle hits)
-            _, res = _rollout(problem, v, events=[event], unmollified=unmollified, collisions=False)
+            _, res = _rollout(problem, v, events=[event], unmollified=unmollified, collisions=False,
+                              max_derivative=max_derivative)
             rollouts += 1
             loss, root, w = _miss_loss(problem, res, tracker, unmollified)
             r = root.detach().numpy()
             if r[1] == 0.0 and abs(r[0] - tau) < READY_STEPS and float(w.detach().min()) > 0.0:
                 # the ghost meets the face's inside at the target time: does the real particle?
-                _, real = _rollout(problem, v, unmollified=unmollified)
+                _, real = _rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
                 rollouts += 1
                 t_hit, step = hit_time(real)
                 if t_hit is not None and on_designated_face(problem, real, step):
                     res, good = real, True
         else:
-            _, res = _rollout(problem, v, unmollified=unmollified)
+            _, res = _rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
             rollouts += 1
             t_hit, step = hit_time(res)
             good = t_hit is not None and on_designated_face(problem, res, step)
@@ -455,6 +467,9 @@ def _result(history, last: int, reached, stalled: bool, rollouts: int, wall_time
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
                         help="Adam iterations per method (default %(default)s)")
+    parser.add_argument("--max-derivative", type=positive_float, default=DEFAULT_MAX_DERIVATIVE,
+                        help="M of the proposed method's mollified derivatives (default %(default)g; "
+                             "the baseline is unmollified)")
 
 
 def _figures(run: dict[str, Any]) -> dict[str, Any]:
@@ -496,7 +511,8 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     methods = {}
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60]}
     for method in ("proposed", "baseline"):
-        result = optimise(problem, args.iters, method)
+        result = optimise(problem, args.iters, method,
+                          max_derivative=getattr(args, "max_derivative", DEFAULT_MAX_DERIVATIVE))
         h = result["history"]
         frames = {"iteration": np.arange(len(h["loss"]))}
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]), sequence=frames)
@@ -514,6 +530,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         "scene": NAME,
         "seed": args.seed,
         "iters": args.iters,
+        "max_derivative": float(getattr(args, "max_derivative", DEFAULT_MAX_DERIVATIVE)),
         "t_target": problem.t_target,
         "v_target": problem.v_target.tolist(),
         "start_velocity": problem.v0.tolist(),

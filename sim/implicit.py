@@ -343,9 +343,21 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 pred = self._last_pred
                 grown = wp.zeros(n, dtype=wp.int32, device=d)  # fresh: a taped pass's adjoint keeps its mask
                 self._count.zero_()
+                # a particle that touched a rigid body is left to the collision stage: holding it
+                # where the trial put it would push the cloth without the body feeling the
+                # reaction (energy created; measured 3x on cloth_rigid before this)
+                inner = handler
+                while not hasattr(inner, "last_body_particles") and hasattr(inner, "handler"):
+                    inner = inner.handler  # e.g. the scenes' ContactGatherer
+                body_touch = getattr(inner, "last_body_particles", None)
+                excluded = self._no_fixed
+                if body_touch is not None and len(body_touch):
+                    mask = np.zeros(n, dtype=np.int32)
+                    mask[body_touch[body_touch < n]] = 1
+                    excluded = wp.array(mask, dtype=wp.int32, device=d)
                 wp.launch(collided_particles, dim=n,
                           inputs=[pred.particle_q, pred.particle_qd, trial.particle_q, trial.particle_qd,
-                                  m.particle_inv_mass, self._no_fixed if fixed is None else fixed],
+                                  m.particle_inv_mass, self._no_fixed if fixed is None else fixed, excluded],
                           outputs=[grown, self._count], device=d, record_tape=False)
                 added = int(self._count.numpy()[0])
                 if added == 0:

@@ -425,3 +425,19 @@ def test_taped_step_replays_the_decided_substeps_exactly():
     assert counts[0] == counts[1]
     np.testing.assert_array_equal(ends[0][0], ends[1][0])
     np.testing.assert_array_equal(ends[0][1], ends[1][1])
+
+
+def test_contact_passes_leave_rigid_body_contacts_to_the_collision_stage():
+    """A rigid ball flying into a hanging cloth, implicit springs with contact re-solves: the
+    particles the ball touches are not held where the trial's collision stage put them (the ball
+    would not feel the reaction). Before, the total energy rose to 3.0x its initial value within
+    30 steps (8.9x without strain refinement); now it never rises above it (1 % slack)."""
+    from scenes import cloth_rigid
+    from scenes.sim_common import default_args, simulate
+
+    for strain in (None, 0.0):
+        args = default_args(steps=30, integrator="implicit", max_strain_step=strain)
+        summary, _ = simulate(cloth_rigid.build, args, None, name="cloth_rigid", progress=False)
+        assert summary["contacts"] > 0
+        assert summary["penetrations"] == 0
+        assert summary["energy_max_ratio"] <= 1.01, (strain, summary["energy_max_ratio"])

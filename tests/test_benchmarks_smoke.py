@@ -1,0 +1,108 @@
+"""Smoke tests of ``python -m benchmarks``: a tiny configuration of each benchmark runs and
+writes its tables, so the command cannot silently rot. (The numbers themselves are measured by
+the command; here only their sanity is checked.)"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+pytestmark = pytest.mark.xdist_group("benchmarks")
+
+
+def _read(prefix):
+    with open(str(prefix) + ".md") as fh:
+        md = fh.read()
+    assert md.startswith("# ") and "Machine:" in md
+    return md
+
+
+def test_roots_tiny(tmp_path):
+    from benchmarks import roots
+
+    data = roots.main(["--n", "2000", "--n-roots", "100", "--n-accuracy", "3", "--out", str(tmp_path / "roots")])
+    md = _read(tmp_path / "roots")
+    assert "float32" in md and "eigvals" in md
+    assert json.loads((tmp_path / "roots.json").read_text())["settings"]["n"] == 2000
+    assert data["speed"]
+
+
+def test_ccd_tiny(tmp_path):
+    from ccd_queries import available
+
+    if not available():
+        pytest.skip("the CCD sample queries are not on this machine (../shared/data/ccd-sample-queries)")
+    from benchmarks import ccd
+
+    ccd.main(["--quick", "--tolerance-scales", "1", "--out", str(tmp_path / "ccd")])
+    md = _read(tmp_path / "ccd")
+    assert "float32" in md and "ipctk" in md.lower()
+
+
+def test_sim_tiny(tmp_path, capsys):
+    from benchmarks import sim as sim_bench
+
+    sim_bench.main(["--dims", "8", "--frames", "1", "--repeats", "1", "--scene-steps", "2", "--sizes", "8",
+                    "--size-steps", "2", "--newton-sizes"])
+    out = capsys.readouterr().out
+    for name in ("NpIntegrator", "cloth_drop", "rigid_toss", "cloth_rigid"):
+        assert name in out
+
+
+def test_gradients_tiny(tmp_path):
+    """A rollout with no contact yet: the gradient must match central differences closely."""
+    from benchmarks import gradients
+
+    res = gradients.main(["--scenes", "cloth_drop", "--steps", "3", "--out", str(tmp_path / "gradients")])
+    _read(tmp_path / "gradients")
+    row = res["rows"][0]
+    assert row["finite"] and row["contact_substeps"] == 0
+    assert row["best_error"] < 1e-5, row["relative_error"]
+    assert row["forward_ms_per_step"] > 0 and row["ratio"] > 0
+
+
+def test_trade_tiny(tmp_path):
+    from benchmarks import trade
+
+    res = trade.main(["--quick", "--scenes", "rigid_toss", "--steps", "3", "--tunnel-iters", "1",
+                      "--out", str(tmp_path / "trade")])
+    md = _read(tmp_path / "trade")
+    assert "rigid_toss" in md and "tunnel" in md
+    assert (tmp_path / "trade.png").stat().st_size > 1000
+    rows = res["scenes"][0]["rows"]
+    assert len(rows) == 2 * len(trade.CONFIGS["quick"]["substeps"]) + len(trade.CONFIGS["quick"]["variants"])
+    for r in rows:
+        if r["diverged"] is None:
+            assert r["ms_per_step"] > 0 and math.isfinite(r["deviation"]) and r["deviation"] >= 0
+    assert sum(r["recommended"] for r in rows) <= 1
+    assert all(r["acceptable"] for r in rows if r["pareto"])
+    assert [t["max_derivative"] for t in res["tunnel"]] == list(trade.CONFIGS["quick"]["max_derivatives"])
+
+
+def test_pareto_front():
+    from benchmarks.trade import _pareto
+
+    pts = [(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (4.0, 1.0), (2.0, 3.0)]
+    # (3, 4) is beaten by (2, 3); the two equal points do not beat each other
+    assert _pareto(pts) == [0, 1, 4, 3]
+
+
+def test_command_reports_a_failed_section(tmp_path, monkeypatch, capsys):
+    import benchmarks.__main__ as cmd
+
+    ran = []
+
+    def fake(name, full, out_dir):
+        ran.append(name)
+        if name == "roots":
+            raise RuntimeError("boom")
+
+    monkeypatch.setattr(cmd, "section", fake)
+    assert cmd.main(["--only", "roots,trade", "--out-dir", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert ran == ["roots", "trade"] and "FAILED" in out
+    with pytest.raises(SystemExit) as exc:
+        cmd.main(["--only", "nope"])
+    assert exc.value.code == 2
