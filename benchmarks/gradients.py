@@ -105,21 +105,10 @@ def scene_gradient(name: str, steps: int, eps_list, seed: int = 0) -> dict[str, 
 
 def main(argv=None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    size = parser.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_true", help="short rollouts (seconds)")
-    size.add_argument("--full", action="store_true", help="long rollouts, four finite-difference steps")
-    parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scenes (default all three)")
-    parser.add_argument("--steps", type=int, default=None, help="override the steps per rollout")
-    parser.add_argument("--out", default=os.path.join(report.RESULTS, "gradients"), help="output prefix (.md/.json)")
+    report.add_size_arguments(parser, SCENES, "gradients", "short rollouts (seconds)",
+                              "long rollouts, four finite-difference steps")
     args = parser.parse_args(argv)
-    config = dict(CONFIGS["quick" if args.quick else "full" if args.full else "default"])
-    if args.steps is not None:
-        if args.steps < 1:
-            parser.error("--steps must be >= 1")
-        config["steps"] = args.steps
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
-    if not scenes or any(s not in SCENES for s in scenes):
-        parser.error(f"--scenes: choose from {', '.join(SCENES)}")
+    config, scenes = report.chosen(parser, args, CONFIGS, SCENES)
     import warp as wp
 
     wp.config.quiet = True

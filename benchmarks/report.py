@@ -5,6 +5,7 @@ place, so an interrupted run never leaves half a table behind).
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -117,3 +118,31 @@ def save_figure(fig, path: str) -> None:
     except BaseException:
         os.unlink(tmp)
         raise
+
+
+def add_size_arguments(parser: argparse.ArgumentParser, scenes: Sequence[str], out_name: str,
+                       quick_help: str, full_help: str) -> None:
+    """The options every per-scene benchmark shares: ``--quick`` / ``--full`` (one of them),
+    ``--scenes``, ``--steps`` and ``--out`` (default ``results/<out_name>``)."""
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help=quick_help)
+    size.add_argument("--full", action="store_true", help=full_help)
+    parser.add_argument("--scenes", default=",".join(scenes), help="comma-separated scenes (default all)")
+    parser.add_argument("--steps", type=int, default=None, help="override the steps per run")
+    parser.add_argument("--out", default=os.path.join(RESULTS, out_name), help="output prefix")
+
+
+def chosen(parser: argparse.ArgumentParser, args: argparse.Namespace, configs: dict[str, dict],
+           scenes: Sequence[str]) -> tuple[dict, list[str]]:
+    """(a copy of the configuration ``--quick`` / ``--full`` / neither picks, with ``--steps``
+    applied; the ``--scenes`` asked for); a usage error for a bad value."""
+    config = dict(configs["quick" if args.quick else "full" if args.full else "default"])
+    if args.steps is not None:
+        if args.steps < 1:
+            parser.error("--steps must be >= 1")
+        config["steps"] = args.steps
+    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    bad = [s for s in names if s not in scenes]
+    if bad or not names:
+        parser.error(f"--scenes: unknown {bad}; choose from {', '.join(scenes)}")
+    return config, names

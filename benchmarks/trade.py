@@ -90,20 +90,16 @@ def _positions(final: dict[str, np.ndarray]) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def _scene_size(module) -> float:
-    from scenes.sim_common import build_model, default_args
-
-    model = build_model(module.build, default_args())
-    state = model.state().numpy()
-    pts = _positions(state)
-    return float(np.linalg.norm(pts.max(0) - pts.min(0))) or 1.0
-
-
-def _default_thickness(module) -> float:
+def _scene_scale(module) -> tuple[float, float]:
+    """(size [m]: the diagonal of the scene's initial bounding box; the contact thickness the
+    collision handler uses at the scene's defaults [m])."""
     from collision.response import ImpulseCollisionHandler
     from scenes.sim_common import build_model, default_args
 
-    return float(ImpulseCollisionHandler(build_model(module.build, default_args())).separation)
+    model = build_model(module.build, default_args())
+    pts = _positions(model.state().numpy())
+    size = float(np.linalg.norm(pts.max(0) - pts.min(0))) or 1.0
+    return size, float(ImpulseCollisionHandler(model).separation)
 
 
 def setting_label(s: dict[str, Any]) -> str:
@@ -149,8 +145,7 @@ def _pareto(points: list[tuple[float, float]]) -> list[int]:
 
 def scene_trade(name: str, config: dict[str, Any], progress) -> dict[str, Any]:
     module = _scene_module(name)
-    size = _scene_size(module)
-    thickness = _default_thickness(module)
+    size, thickness = _scene_scale(module)
     steps = config["steps"]
     grid = [{"substeps": n, "integrator": kind} for kind in ("semi_implicit", "implicit") for n in config["substeps"]]
     for v in config["variants"]:
@@ -259,28 +254,16 @@ def _plot(results: list[dict[str, Any]], path: str) -> None:
 
 def main(argv=None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    size = parser.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_true", help="a small grid and short runs (a few minutes)")
-    size.add_argument("--full", action="store_true", help="the largest grid and longest runs")
-    parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scenes (default all three)")
-    parser.add_argument("--steps", type=int, default=None, help="override the steps per run")
+    report.add_size_arguments(parser, SCENES, "trade", "a small grid and short runs (a few minutes)",
+                              "the largest grid and longest runs")
     parser.add_argument("--skip-tunnel", action="store_true", help="leave out the M sweep on the tunnel scene")
     parser.add_argument("--tunnel-iters", type=int, default=None, help="override the Adam iterations per tunnel run")
-    parser.add_argument("--out", default=os.path.join(report.RESULTS, "trade"), help="output prefix (.md/.json/.png)")
     args = parser.parse_args(argv)
-    config = dict(CONFIGS["quick" if args.quick else "full" if args.full else "default"])
-    if args.steps is not None:
-        if args.steps < 1:
-            parser.error("--steps must be >= 1")
-        config["steps"] = args.steps
+    config, scenes = report.chosen(parser, args, CONFIGS, SCENES)
     if args.tunnel_iters is not None:
         if args.tunnel_iters < 1:
             parser.error("--tunnel-iters must be >= 1")
         config["tunnel_iters"] = args.tunnel_iters
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
-    unknown = [s for s in scenes if s not in SCENES]
-    if unknown or not scenes:
-        parser.error(f"--scenes: unknown {unknown}; choose from {', '.join(SCENES)}")
 
     import warp as wp
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from collision.buffers import upload
 from collision.replay import active_tape, paused_tape
 from kernels.implicit import (
     add_kernel,
@@ -145,6 +146,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         self._x_target = None
         self._last_pred = None
         self._no_fixed = wp.zeros(n, dtype=wp.int32, device=d)
+        self._body_touch = wp.zeros(n, dtype=wp.int32, device=d)  # a decision mask, refilled per trial (never taped)
         self._count = wp.zeros(1, dtype=wp.int32, device=d)
         # CG's work arrays (never taped, reused)
         self._r = wp.zeros(n, dtype=wp.vec3d, device=d)
@@ -354,7 +356,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 if body_touch is not None and len(body_touch):
                     mask = np.zeros(n, dtype=np.int32)
                     mask[body_touch[body_touch < n]] = 1
-                    excluded = wp.array(mask, dtype=wp.int32, device=d)
+                    excluded = upload(self._body_touch, mask)
                 wp.launch(collided_particles, dim=n,
                           inputs=[pred.particle_q, pred.particle_qd, trial.particle_q, trial.particle_qd,
                                   m.particle_inv_mass, self._no_fixed if fixed is None else fixed, excluded],
