@@ -17,7 +17,7 @@ measured in the same run as its peer. The sections:
 * ``gradients``: rollout gradients against finite differences, forward + backward cost
   (:mod:`benchmarks.gradients`);
 * ``trade``: wall time against accuracy over substeps x integrator x thickness x rounds x
-  response per scene, ``M`` on the inverse scene, Pareto table and plot with the recommended
+  response x the CCD decisions' precision / tolerance / root iteration cap per scene, ``M`` on the inverse scene, Pareto table and plot with the recommended
   setting (:mod:`benchmarks.trade`);
 * ``--full`` adds ``grazing`` (gradients across a grazing contact, plot), ``implicit``
   (implicit-integrator accuracy), ``rollout`` (time and memory of long rollouts) and ``inverse``

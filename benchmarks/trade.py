@@ -7,7 +7,9 @@ grid runs the scene for the same simulated time and is compared with a *referenc
 same scene at many more substeps (semi-implicit, Gauss-Seidel response, everything else at the
 defaults). The grid: substeps x integrator (semi-implicit / implicit), plus one-factor changes at
 the default 8 substeps: the contact thickness (x0.1, x10), the collision rounds per substep, the
-response (replayed exact solve instead of Gauss-Seidel) and CG's tolerance (implicit).
+response (replayed exact solve instead of Gauss-Seidel), CG's tolerance (implicit), and the narrow
+phase that decides the CCD contacts: float32, its error bounds' tolerance scale, its root solver's
+iteration cap (``--ccd-precision``, ``--ccd-tolerance-scale``, ``--root-max-iterations``).
 
 Accuracy, per run (all from the run itself or the reference run, never from the settings):
 
@@ -27,8 +29,9 @@ of the front within :data:`DEVIATION_GOAL` of the reference (marked ★).
 ``M`` (the robust division's bound) does not change a forward simulation at all; it shapes the
 gradients. Its trade is measured on the inverse scene ``tunnel`` (final loss and success of the
 proposed method's Adam runs for several ``M``, same seeds and budget). Precision: the scenes step
-in float64 only (``--precision float32`` is not offered); the float32 root solver and CCD are
-measured in the roots and CCD benchmarks.
+in float64 only (``--precision float32`` is not offered); float32 enters through the CCD
+decisions here, and the float32 root solver and CCD on their own are measured in the roots and
+CCD benchmarks.
 
 Writes ``<out>.md``, ``<out>.json`` and ``<out>.png`` (one panel per scene: ms/step against
 deviation, the front, the recommended setting).
@@ -61,19 +64,24 @@ CONFIGS = {
     # steps, reference substeps, substeps of the grid, one-factor changes at 8 substeps
     "quick": dict(steps=30, reference=32, substeps=(4, 8, 16), tunnel_seeds=(0,), tunnel_iters=30,
                   max_derivatives=(10.0, 1000.0, 1.0e6),
-                  variants=({"thickness_factor": 10.0}, {"collision_rounds": 2}, {"response": "replayed"})),
+                  variants=({"thickness_factor": 10.0}, {"collision_rounds": 2}, {"response": "replayed"},
+                            {"ccd_precision": "float32"})),
     "default": dict(steps=90, reference=64, substeps=(2, 4, 8, 16, 32), tunnel_seeds=(0, 1), tunnel_iters=100,
                     max_derivatives=(10.0, 100.0, 1000.0, 1.0e4, 1.0e6),
                     variants=({"thickness_factor": 0.1}, {"thickness_factor": 10.0}, {"collision_rounds": 1},
                               {"collision_rounds": 2}, {"response": "replayed"},
-                              {"integrator": "implicit", "cg_tolerance": 1e-4})),
+                              {"integrator": "implicit", "cg_tolerance": 1e-4}, {"ccd_precision": "float32"},
+                              {"ccd_tolerance_scale": 0.1}, {"root_max_iterations": 4})),
     "full": dict(steps=180, reference=128, substeps=(2, 4, 8, 16, 32, 64), tunnel_seeds=(0, 1, 2, 3),
                  tunnel_iters=300, max_derivatives=(1.0, 10.0, 100.0, 1000.0, 1.0e4, 1.0e6),
                  variants=({"thickness_factor": 0.1}, {"thickness_factor": 10.0}, {"collision_rounds": 1},
                            {"collision_rounds": 2}, {"collision_rounds": 4}, {"response": "replayed"},
                            {"integrator": "implicit", "response": "replayed"},
                            {"integrator": "implicit", "cg_tolerance": 1e-4},
-                           {"integrator": "implicit", "cg_tolerance": 1e-12})),
+                           {"integrator": "implicit", "cg_tolerance": 1e-12}, {"ccd_precision": "float32"},
+                           {"ccd_precision": "float32", "ccd_tolerance_scale": 10.0},
+                           {"ccd_tolerance_scale": 0.1}, {"ccd_tolerance_scale": 10.0},
+                           {"root_max_iterations": 2}, {"root_max_iterations": 4})),
 }
 
 
@@ -113,6 +121,12 @@ def setting_label(s: dict[str, Any]) -> str:
         parts.append(f"{s['collision_rounds']} rounds")
     if s.get("cg_tolerance") is not None:
         parts.append(f"cg {s['cg_tolerance']:g}")
+    if s.get("ccd_precision", "float64") != "float64":
+        parts.append(f"ccd {s['ccd_precision']}")
+    if s.get("ccd_tolerance_scale", 1.0) != 1.0:
+        parts.append(f"ccd tol x{s['ccd_tolerance_scale']:g}")
+    if s.get("root_max_iterations") is not None:
+        parts.append(f"{s['root_max_iterations']} root its")
     return ", ".join(parts)
 
 
@@ -125,7 +139,10 @@ def run_setting(module, setting: dict[str, Any], steps: int, thickness: float) -
                         response=setting.get("response", "gauss-seidel"),
                         collision_rounds=setting.get("collision_rounds", 8),
                         cg_tolerance=setting.get("cg_tolerance"),
-                        thickness=thickness * setting.get("thickness_factor", 1.0))
+                        thickness=thickness * setting.get("thickness_factor", 1.0),
+                        ccd_precision=setting.get("ccd_precision", "float64"),
+                        ccd_tolerance_scale=setting.get("ccd_tolerance_scale", 1.0),
+                        root_max_iterations=setting.get("root_max_iterations"))
     try:
         summary, final = simulate(module.build, args, None, name=module.NAME, progress=False)
     except SimulationDiverged as exc:
@@ -155,6 +172,9 @@ def scene_trade(name: str, config: dict[str, Any], progress) -> dict[str, Any]:
     for kind in ("semi_implicit", "implicit"):
         for response in ("gauss-seidel", "replayed"):
             run_setting(module, {"substeps": 8, "integrator": kind, "response": response}, 2, thickness)
+    for v in config["variants"]:  # generated narrow-phase variants compile at their first launch too
+        if any(key in v for key in ("ccd_precision", "ccd_tolerance_scale", "root_max_iterations")):
+            run_setting(module, {"substeps": 8, "integrator": "semi_implicit", **v}, 2, thickness)
     reference = run_setting(module, {"substeps": config["reference"], "integrator": "semi_implicit"}, steps, thickness)
     if reference["diverged"]:
         raise RuntimeError(f"{name}: the reference run diverged: {reference['diverged']}")

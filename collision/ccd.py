@@ -166,6 +166,12 @@ class CandidateNarrowPhase:
     Args:
         broad_phase: the :class:`collision.broad_phase.BroadPhase` of the mesh (its ``faces``
             and ``edges`` number the pairs; its device is used).
+        precision, tolerance_scale, max_iterations, tolerance: the narrow phase's knobs, as
+            :func:`narrow_phase`'s (defaults: the float64 kernels as written). A non-default
+            setting runs a generated variant (:mod:`kernels.variants`, forward-only): these
+            decide contacts, off any tape. With ``"float32"`` the positions of each :meth:`ccd`
+            are rounded to float32 on the host and the whole narrow phase and its root solver
+            run in float32; :meth:`near` (the proximity test) stays float64.
     """
 
     COVER_SAFETY = 0.45
@@ -173,8 +179,13 @@ class CandidateNarrowPhase:
     one: room for the rounding of the boxes' float64 arithmetic (the broad phase pads its
     float32 boxes for its own rounding only)."""
 
-    def __init__(self, broad_phase) -> None:
+    def __init__(self, broad_phase, *, precision: str = "float64", tolerance_scale: float = 1.0,
+                 max_iterations=None, tolerance=None) -> None:
         init_warp()
+        self.settings = _variants.check_settings(precision, max_iterations, tolerance, tolerance_scale)
+        self._kernels = _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
+        self._float32 = self._kernels is not _k and self._kernels.mat83d._wp_scalar_type_ is wp.float32
+        self._real = wp.float32 if self._float32 else wp.float64
         self.broad_phase = broad_phase
         dev = self.device = broad_phase.device
         self._faces = wp.array(np.ascontiguousarray(broad_phase.faces, dtype=np.int32).reshape(-1, 3),
@@ -183,13 +194,16 @@ class CandidateNarrowPhase:
                                dtype=wp.vec2i, device=dev)
         self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._pairs = wp.empty(0, dtype=wp.vec2i, device=dev)
-        self._time = wp.empty(0, dtype=wp.float64, device=dev)
+        self._time = wp.empty(0, dtype=self._real, device=dev)
         self._source = wp.empty(0, dtype=wp.int32, device=dev)
         self._offset = wp.empty(0, dtype=wp.vec3d, device=dev)
         self._weights = wp.empty(0, dtype=wp.vec4d, device=dev)
         n = broad_phase.num_vertices
         self._x0 = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._x1 = wp.empty(n, dtype=wp.vec3d, device=dev)
+        if self._float32:  # the float32 narrow phase's rounded positions
+            self._x0_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
+            self._x1_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
         self._cover = None  # (buffers, x0, x1, margin, broad-phase query count) of the last cover()
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
@@ -225,7 +239,7 @@ class CandidateNarrowPhase:
             n = max(n, 2 * self._pairs.shape[0], 64)
             dev = self.device
             self._pairs = wp.empty(n, dtype=wp.vec2i, device=dev)
-            self._time = wp.empty(n, dtype=wp.float64, device=dev)
+            self._time = wp.empty(n, dtype=self._real, device=dev)
             self._source = wp.empty(n, dtype=wp.int32, device=dev)
             self._offset = wp.empty(n, dtype=wp.vec3d, device=dev)
             self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
@@ -263,15 +277,24 @@ class CandidateNarrowPhase:
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
         buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
+        if self._float32:
+            with np.errstate(over="ignore"):
+                x0_32 = np.asarray(x0, dtype=np.float32)
+                x1_32 = np.asarray(x1, dtype=np.float32)
+            if not (np.isfinite(x0_32).all() and np.isfinite(x1_32).all() and np.isfinite(np.float32(t))):
+                raise ValueError("x0, x1: positions (or the thickness) overflow float32 (precision='float32')")
+            xa, xb = upload(self._x0_32, x0_32), upload(self._x1_32, x1_32)
+            t = float(np.float32(t))
 
         def launch(kind, pairs, n):
-            self._launches.launch(("ccd", kind), _k.pair_ccd_kernel, n,
+            self._launches.launch(("ccd", kind), self._kernels.pair_ccd_kernel, n,
                                   [kind, pairs, xa, xb, self._faces, self._edges, t,
                                    self._counter, self._pairs, self._time, self._source])
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
-        return kind, pair, host(self._time)[:n][order], host(self._source)[:n][order].astype(np.int64)
+        toi = host(self._time)[:n][order].astype(np.float64)
+        return kind, pair, toi, host(self._source)[:n][order].astype(np.int64)
 
     def near(self, x, max_distance: float):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).

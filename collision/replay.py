@@ -175,12 +175,14 @@ class ContactReplay:
         return out
 
     def geometry(self, x0, x1, lever, rows, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
-                 separation, separation_rate, touching_relative, max_derivative):
+                 separation, separation_rate, touching_relative, max_derivative, nearest_slot: bool = False):
         """Times of impact [s], weights, normals and targets of new contact rows.
 
         ``rows``: dict of host arrays ``pairs`` (C, 4), ``kinds``, ``sources``, ``detected``
         (fraction of the substep), ``plane_ids``. ``particle_time`` / ``body_time``: host times
-        of impact already assigned to each owner (inf for none).
+        of impact already assigned to each owner (inf for none). ``nearest_slot``: take the
+        cubic's root nearest the detected fraction rather than the one in the ``sources`` slot
+        (for a narrow phase that is not the float64 one, whose slots need not match).
         """
         c = len(rows["kinds"])
         toi = self._zeros(c, wp.float64)
@@ -196,7 +198,7 @@ class ContactReplay:
                     self._or(vm_b, self._empty_twist), self._or(vc_b, self._empty_twist),
                     self._floats(particle_time), self._floats(body_time), wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
-                    wp.float64(max_derivative)],
+                    wp.float64(max_derivative), int(bool(nearest_slot))],
             outputs=[toi, w, n, target], device=self.device,
         )
         return toi, w, n, target

@@ -57,6 +57,7 @@ import warp as wp
 from collision.broad_phase import BroadPhase
 from collision.buffers import RecordedLaunches, Staging, host, upload
 from collision.ccd import CandidateNarrowPhase
+from kernels.variants import check_settings as check_ccd_settings
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
 from collision.mesh import VERTEX_STATIC as _STATIC
@@ -204,12 +205,45 @@ class _Contacts:
         return new_index, keep_toi, keep_target
 
 
+CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
+"""Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
+
+
+def check_ccd_options(ccd_options) -> dict:
+    """``ccd_options`` validated (a dict with keys of :data:`CCD_OPTIONS`, values as
+    :func:`kernels.variants.check_settings` takes them; None: {}), as a new dict.
+
+    Raises:
+        ValueError: naming ``ccd_options`` or the bad key.
+    """
+    if ccd_options is None:
+        return {}
+    if not isinstance(ccd_options, dict):
+        raise ValueError(f"ccd_options must be a dict or None, got {type(ccd_options).__name__}")
+    unknown = set(ccd_options) - set(CCD_OPTIONS)
+    if unknown:
+        raise ValueError(f"ccd_options: unknown keys {sorted(unknown)}; expected some of {CCD_OPTIONS}")
+    try:
+        check_ccd_settings(**ccd_options)
+    except ValueError as exc:
+        raise ValueError(f"ccd_options: {exc}") from None
+    return dict(ccd_options)
+
+
 class ImpulseCollisionHandler:
     """Proximity + CCD + impulse response at the time of impact (see the module docstring).
 
     Args:
         model: the finalised model (its surfaces, masses, restitution, friction, thickness).
         max_iterations: CCD/response rounds before the fail-safe.
+        differentiable: the decide-then-replay response (:meth:`_call_replayed`), which a
+            ``wp.Tape`` can record, instead of Gauss-Seidel impulses.
+        max_derivative: the robust-division bound ``M`` of the replayed times of impact.
+        ccd_options: the narrow phase's knobs that decide the CCD contacts, a dict of
+            ``precision`` ("float64" / "float32"), ``tolerance_scale``, ``max_iterations`` and
+            ``tolerance`` (:class:`collision.ccd.CandidateNarrowPhase`); None: the float64
+            kernels as written. The replay recomputes each contact's ``t*`` with the float64
+            root solver (and its mollified derivative) either way.
 
     Attributes (of the last call, for logging and tests):
         last_contacts: (C, 3) contact points [m] (side A's closest point at ``t*``) of the
@@ -227,8 +261,9 @@ class ImpulseCollisionHandler:
     """
 
     def __init__(self, model: Model, max_iterations: int = 8, differentiable: bool = False,
-                 max_derivative: float = DEFAULT_MAX_DERIVATIVE):
+                 max_derivative: float = DEFAULT_MAX_DERIVATIVE, ccd_options: dict | None = None):
         self.model = model
+        self.ccd_options = check_ccd_options(ccd_options)
         self.max_iterations = int(max_iterations)
         self.differentiable = bool(differentiable)
         self.max_derivative = float(max_derivative)
@@ -281,7 +316,7 @@ class ImpulseCollisionHandler:
                 groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
                 static=np.array(static, dtype=bool), device=model.device,
             )
-            self._narrow = CandidateNarrowPhase(self.broad_phase)
+            self._narrow = CandidateNarrowPhase(self.broad_phase, **self.ccd_options)
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
         # vertices an impulse can move: rigid ones and unpinned particles
         inv_mass = np.zeros(len(self.vertex_type))
@@ -804,7 +839,8 @@ class ImpulseCollisionHandler:
             rows = {"pairs": idx, "kinds": kind, "sources": source, "detected": frac,
                     "plane_ids": np.where(kind == 2, pair[:, 1], 0)}
             out = R.geometry(X0, X1, L0, rows, vm_p, st["vp"], vm_b, st["vb"], t_p, t_b, h, delta,
-                             SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative)
+                             SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative,
+                             self.ccd_options.get("precision", "float64") != "float64")
             return out, [a.numpy()[: len(kind)] for a in out]
 
         def add(sel, out, host, kind, pair, idx, source):

@@ -324,6 +324,7 @@ def contact_geometry_kernel(
     separation_rate: wp.float64,
     touching_relative: wp.float64,
     max_derivative: wp.float64,
+    nearest_slot: wp.int32,
     toi: wp.array(dtype=wp.float64),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
@@ -335,7 +336,9 @@ def contact_geometry_kernel(
 
     * ``t*``: 0 for proximity contacts (source 0); the real part of the cubic's root in slot
       ``source - 1`` for CCD hits at a root (through :func:`kernels.roots.cubic_roots`, whose
-      adjoint is the mollified implicit derivative bounded by ``max_derivative``); the linear
+      adjoint is the mollified implicit derivative bounded by ``max_derivative``; with
+      ``nearest_slot`` the slot whose real part is nearest the detected fraction instead: a
+      narrow phase of another precision numbers its roots its own way); the linear
       crossing time for vertex-plane hits (source 6); otherwise the detected fraction.
     * weights and normal at ``t*`` (:func:`pair_weights`; the face / edge-edge normal oriented
       by the start offset, or, for proximity pairs, the offset direction; touching pairs take
@@ -361,7 +364,12 @@ def contact_geometry_kernel(
     frac = zero
     if src >= 1 and src <= 3:
         r = cubic_roots(unit_scaled_cubic(coplanarity_cubic(a0, a1, a2, a3, b0, b1, b2, b3)), CCD_T_MAX, max_derivative)
-        frac = wp.clamp(r[2 * (src - 1)], zero, one)
+        slot = src - 1
+        if nearest_slot != 0:
+            for k in range(3):
+                if wp.abs(wp.clamp(r[2 * k], zero, one) - detected[c]) < wp.abs(wp.clamp(r[2 * slot], zero, one) - detected[c]):
+                    slot = k
+        frac = wp.clamp(r[2 * slot], zero, one)
     elif src == TIME_PLANE:
         p = planes[plane_ids[c]]
         pn = wp.vec3d(p[0], p[1], p[2])
@@ -611,6 +619,23 @@ def delassus_kernel(
 
 
 @wp.func
+def unit_perpendicular(n: wp.vec3d) -> wp.vec3d:
+    """A unit vector perpendicular to the unit vector ``n`` (crossed with the axis least aligned
+    with it; the choice changes no basis-independent result)."""
+    ax = wp.abs(n[0])
+    ay = wp.abs(n[1])
+    az = wp.abs(n[2])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    axis = wp.vec3d(one, zero, zero)
+    if ay <= ax and ay <= az:
+        axis = wp.vec3d(zero, one, zero)
+    elif az <= ax and az <= ay:
+        axis = wp.vec3d(zero, zero, one)
+    return wp.normalize(wp.cross(n, axis))
+
+
+@wp.func
 def relative_velocity(
     c: int,
     pairs: wp.array(dtype=wp.vec4i),
@@ -757,13 +782,18 @@ def friction_impulses_kernel(
     friction: wp.float64,
     impulses: wp.array(dtype=wp.vec3d),
 ):
-    """Coulomb friction impulse of contact ``tid`` after its normal impulse ``j_n`` (> 0): the
-    impulse that stops the tangential relative velocity ``v_t`` (``-share v_t / k_t``, ``k_t``
-    the contact's inverse effective mass along ``v_t``; ``share`` is one over the most active
-    contacts any of its particles or bodies takes part in, so that stopping impulses applied
-    together do not over-correct a shared vertex) when it lies within ``mu j_n`` (sticking), else
-    ``-mu j_n v_t / |v_t|`` (sliding). The branch is taken here, per evaluation (smooth on each
-    side; the derivative of the slip direction grows like ``1 / |v_t|`` near sticking)."""
+    """Coulomb friction impulse of contact ``tid`` after its normal impulse ``j_n`` (> 0).
+
+    The stopping impulse ``j_s = -share T (T^T K T)^-1 T^T v_t`` cancels the whole tangential
+    relative velocity ``v_t`` (``T`` an orthonormal tangent basis, ``K`` the contact's 3x3
+    Delassus block; ``share`` is one over the most active contacts any of its particles or bodies
+    takes part in, so that stopping impulses applied together do not over-correct a shared
+    vertex). Within the cone ``|j_s| <= mu j_n`` the contact sticks and gets ``j_s``; outside it
+    slides and gets ``-mu j_n v_t / |v_t|`` (there ``|v_t| > 0``: a vanishing ``v_t`` gives a
+    vanishing ``j_s``). The branch is taken here, per evaluation. ``j_s`` is linear in ``v_t``
+    (the same for any basis ``T``), so the sticking impulse is smooth at ``v_t = 0`` (a body at
+    rest): an effective mass along ``v_t / |v_t|`` would depend on the direction of a vanishing
+    vector, and its derivative there on rounding noise."""
     c = wp.tid()
     zero = wp.float64(0.0)
     n = normals[c]
@@ -771,19 +801,35 @@ def friction_impulses_kernel(
     impulses[c] = wp.vec3d(zero, zero, zero)
     if jn > zero:
         vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
-        vt = vrel - wp.dot(vrel, n) * n
-        speed = wp.length(vt)
-        if speed > zero:
-            t = vt / speed
-            kt = wp.dot(t, contact_response(
-                c, c, t, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
-                particle_inv_mass, body_inv_mass, body_inv_inertia,
-            ))
-            if kt > zero:
-                # only the stopping impulse is shared; the Coulomb limit is the contact's own
-                stop = share[c] * speed / kt
-                limit = friction * jn
-                impulses[c] = -wp.min(stop, limit) * t
+        t1 = unit_perpendicular(n)
+        t2 = wp.cross(n, t1)
+        k1 = contact_response(c, c, t1, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a,
+                              rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+        k2 = contact_response(c, c, t2, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a,
+                              rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+        a11 = wp.dot(t1, k1)
+        a22 = wp.dot(t2, k2)
+        a12 = wp.float64(0.5) * (wp.dot(t1, k2) + wp.dot(t2, k1))
+        trace = a11 + a22
+        if trace > zero:
+            b1 = wp.dot(t1, vrel)
+            b2 = wp.dot(t2, vrel)
+            det = a11 * a22 - a12 * a12
+            x1 = wp.float64(2.0) * b1 / trace
+            x2 = wp.float64(2.0) * b2 / trace
+            if det > wp.float64(1e-12) * trace * trace:
+                x1 = (a22 * b1 - a12 * b2) / det
+                x2 = (a11 * b2 - a12 * b1) / det
+            stop = -share[c] * (x1 * t1 + x2 * t2)
+            limit = friction * jn
+            if wp.length(stop) <= limit:
+                impulses[c] = stop
+            else:
+                # Coulomb: sliding friction opposes the sliding velocity (for an anisotropic K
+                # the stopping impulse does not, and its projection on the cone would brake a
+                # sliding body by less than mu j_n)
+                vt = vrel - wp.dot(vrel, n) * n
+                impulses[c] = (-limit / wp.length(vt)) * vt
 
 
 @wp.kernel

@@ -38,7 +38,8 @@ from sim.integrator import INTEGRATORS
 from sim.rotation import quat_to_matrix
 
 PRECISIONS = ("float64",)
-"""The simulator is float64 throughout."""
+"""The simulator step is float64 throughout (the narrow phase that decides CCD contacts can run in
+float32: ``--ccd-precision``)."""
 SUPPORTS_STEPS = True
 DEFAULT_STEPS = 120
 DEFAULT_DT = 1.0 / 60.0
@@ -54,6 +55,26 @@ DEFAULT_RESPONSE = "gauss-seidel"
 :class:`collision.response.ImpulseCollisionHandler`)."""
 
 BuildFn = Callable[[Any, argparse.Namespace], None]
+CCD_PRECISIONS = ("float64", "float32")
+"""Precisions of the narrow phase that decides CCD contacts (``--ccd-precision``)."""
+
+
+def ccd_options(args: argparse.Namespace) -> dict:
+    """The narrow-phase knobs of ``args`` (``--ccd-*``, ``--root-*``) as the collision
+    handler's ``ccd_options`` (only the non-default ones: the defaults run the kernels as
+    written)."""
+    options = {}
+    precision = getattr(args, "ccd_precision", "float64")
+    if precision != "float64":
+        options["precision"] = precision
+    scale = getattr(args, "ccd_tolerance_scale", 1.0)
+    if scale != 1.0:
+        options["tolerance_scale"] = float(scale)
+    for flag, key in (("root_max_iterations", "max_iterations"), ("root_tolerance", "tolerance")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            options[key] = value
+    return options
 
 
 def warp_device(text: str) -> str:
@@ -99,6 +120,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--collision-rounds", type=positive_int, default=DEFAULT_COLLISION_ROUNDS,
                         help="CCD + impulse rounds per substep before the rigid impact-zone fail-safe "
                              f"(>= 1; default {DEFAULT_COLLISION_ROUNDS})")
+    parser.add_argument("--ccd-precision", choices=CCD_PRECISIONS, default="float64",
+                        help="precision of the narrow phase (and its root solver) that decides the CCD contacts; "
+                             "the replayed times of impact and everything else stay float64 (default %(default)s)")
+    parser.add_argument("--ccd-tolerance-scale", type=positive_float, default=1.0,
+                        help="multiplier of the narrow phase's coefficient and distance error bounds: < 1 fewer "
+                             "false positives, false negatives possible; > 1 looser (default 1)")
+    parser.add_argument("--root-max-iterations", type=positive_int, default=None,
+                        help="the narrow phase's Newton-bisection iteration cap per root (default 256)")
+    parser.add_argument("--root-tolerance", type=positive_float, default=None,
+                        help="the narrow phase's relative Newton step tolerance (default 2 ulp of the precision)")
     parser.add_argument("--contact-passes", type=non_negative_int, default=None,
                         help="implicit integrator: constrained re-solves per substep for the particles in contact "
                              "(0 = collision response after the solve only; default 1)")
@@ -110,7 +141,8 @@ def default_args(**overrides: Any) -> argparse.Namespace:
                             substeps=DEFAULT_SUBSTEPS, device=DEFAULT_DEVICE, scale=1.0,
                             response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None,
                             max_strain_step=None, contact_passes=None, thickness=None,
-                            collision_rounds=DEFAULT_COLLISION_ROUNDS)
+                            collision_rounds=DEFAULT_COLLISION_ROUNDS, ccd_precision="float64",
+                            ccd_tolerance_scale=1.0, root_max_iterations=None, root_tolerance=None)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -284,7 +316,7 @@ def simulate(
     integrator = make_integrator(model, kind, **options)
     handler = ImpulseCollisionHandler(
         model, max_iterations=int(getattr(args, "collision_rounds", DEFAULT_COLLISION_ROUNDS)),
-        differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed")
+        differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed", ccd_options=ccd_options(args))
     gatherer = ContactGatherer(handler)
     integrator.collision_handler = gatherer
     checker = PenetrationChecker(model)
@@ -373,6 +405,7 @@ def simulate(
         "response": getattr(args, "response", DEFAULT_RESPONSE),
         "thickness": float(model.thickness),
         "collision_rounds": int(handler.max_iterations),
+        "ccd_options": dict(handler.ccd_options),
         "cg_iterations": int(getattr(integrator, "total_iterations", 0)),
         "refined_substeps": int(getattr(integrator, "refinements", 0)),
         "contact_constrained": int(getattr(integrator, "total_constrained", 0)),

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from collision.response import ImpulseCollisionHandler
+from collision.response import ImpulseCollisionHandler, check_ccd_options
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from kernels.integrate import inverse_masses
 from sim.events import check_events, event_outputs
@@ -178,8 +178,10 @@ class _Runner:
     """Steps the model and replays taped segments backwards (one instance per rollout call)."""
 
     def __init__(self, model: Model, steps: int, dt: float, substeps: int, checkpoint_every, collisions: bool,
-                 max_derivative: float, integrator: str = "semi_implicit", integrator_options=None):
+                 max_derivative: float, integrator: str = "semi_implicit", integrator_options=None,
+                 ccd_options=None):
         self.model = model
+        self.ccd_options = ccd_options
         self.integrator = integrator
         self.integrator_options = dict(integrator_options or {})
         self.steps, self.dt, self.substeps = steps, dt, substeps
@@ -198,7 +200,8 @@ class _Runner:
         integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
         if self.collisions:
             if self.handler is None:
-                self.handler = ImpulseCollisionHandler(self.model, differentiable=True, max_derivative=self.max_derivative)
+                self.handler = ImpulseCollisionHandler(self.model, differentiable=True, max_derivative=self.max_derivative,
+                                                       ccd_options=self.ccd_options)
             if self.handler.broad_phase is not None:
                 integ.collision_handler = self._counting(self.handler)
         return integ
@@ -421,6 +424,7 @@ def rollout(
     integrator_options: dict | None = None,
     particle_mass: torch.Tensor | None = None,
     spring_stiffness: torch.Tensor | None = None,
+    ccd_options: dict | None = None,
 ) -> RolloutResult:
     """Simulates ``steps`` steps of ``dt`` [s] (each split into ``substeps``) from the model's
     initial state, differentiably.
@@ -458,6 +462,11 @@ def rollout(
             integrator and the collision response are computed from it (1/m, 0 for pinned).
         spring_stiffness: spring stiffnesses [N/m], torch float64 (S,), finite and >= 0; None =
             the model's.
+        ccd_options: the knobs of the narrow phase that decides the CCD contacts
+            (``precision`` "float64"/"float32", ``tolerance_scale``, ``max_iterations``,
+            ``tolerance``; see :class:`collision.response.ImpulseCollisionHandler`); None: the
+            float64 kernels as written. Decisions only: the replayed ``t*`` and its derivative
+            come from the float64 root solver either way.
 
     Either parameter replaces the model's array in a shallow copy of ``model`` (``model``
     itself is not changed). When it requires gradients, they flow through everything the
@@ -481,9 +490,10 @@ def rollout(
     if event_derivative not in DERIVATIVES:
         raise ValueError(f"event_derivative must be one of {DERIVATIVES}, got {event_derivative!r}")
     check_integrator(integrator, integrator_options)
+    ccd_options = check_ccd_options(ccd_options)
     particle_mass, spring_stiffness = _check_parameters(model, particle_mass, spring_stiffness)
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
-                     integrator_options)
+                     integrator_options, ccd_options)
     has_p, has_b = particle_qd is not None, body_qd is not None
     has_m, has_k = particle_mass is not None, spring_stiffness is not None
     p_in = particle_qd if has_p else torch.zeros((model.particle_count, 3), dtype=torch.float64)

@@ -492,3 +492,45 @@ def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
     before = narrow.queries
     assert len(narrow.ccd(x0, x0, 0.06)[0]) == want
     assert narrow.queries == before + 1
+
+
+@pytest.mark.parametrize("options", [{"precision": "float32"}, {"tolerance_scale": 0.01},
+                                     {"max_iterations": 3, "tolerance": 1e-6},
+                                     {"precision": "float32", "tolerance_scale": 10.0}])
+def test_candidate_narrow_phase_knobs_give_the_stacked_narrow_phase_of_the_same_knobs(options):
+    """The simulator's narrow phase with a generated variant (float32, tolerance scale, root
+    iteration cap) hits exactly the pairs, at the times, of :func:`narrow_phase` with the same
+    knobs on the broad phase's candidates (both in float32 from float64 positions)."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, narrow_phase
+
+    x0, x1, faces = _crumpled_sheets(1)
+    edges = mesh_edges(faces)
+    bp = BroadPhase(faces, edges, num_vertices=len(x0))
+    vf, ee = bp.query(x0, x1, 0.0)
+    kind, pair, toi, source = CandidateNarrowPhase(bp, **options).ccd(x0, x1)
+    want_kind, want_pair, want_toi = [], [], []
+    for k, pairs in ((0, vf), (1, ee)):
+        idx = (np.column_stack([pairs[:, 0], faces[pairs[:, 1]]]) if k == 0
+               else np.column_stack([edges[pairs[:, 0]], edges[pairs[:, 1]]]))
+        hit, t, _ = narrow_phase(k, np.concatenate([x0[idx], x1[idx]], axis=1), **options)
+        want_kind.append(np.full(hit.sum(), k))
+        want_pair.append(pairs[hit])
+        want_toi.append(t[hit])
+    assert len(kind) > 10  # (3 root iterations miss some of the ~25 float64 hits)
+    np.testing.assert_array_equal(kind, np.concatenate(want_kind))
+    np.testing.assert_array_equal(pair, np.vstack(want_pair))
+    np.testing.assert_array_equal(toi, np.concatenate(want_toi))
+    assert toi.dtype == np.float64 and set(np.unique(source)) <= {0, 1, 2, 3, 4}
+
+
+def test_candidate_narrow_phase_bad_knob_is_a_value_error_naming_it():
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase
+
+    _, _, faces = _crumpled_sheets(0)
+    bp = BroadPhase(faces, mesh_edges(faces), num_vertices=int(faces.max()) + 1)
+    for options, name in (({"precision": "float16"}, "precision"), ({"tolerance_scale": 0.0}, "tolerance_scale"),
+                          ({"max_iterations": 0}, "max_iterations"), ({"tolerance": float("nan")}, "tolerance")):
+        with pytest.raises(ValueError, match=name):
+            CandidateNarrowPhase(bp, **options)

@@ -92,6 +92,10 @@ def _tiny_model():
         ({"max_derivative": "big"}, "max_derivative"),
         ({"max_derivative": -1.0}, "max_derivative"),
         ({"events": np.zeros((1, 3))}, "events"),
+        ({"ccd_options": {"precision": "float16"}}, "precision"),
+        ({"ccd_options": {"tolerance_scale": -1.0}}, "tolerance_scale"),
+        ({"ccd_options": {"iterations": 3}}, "ccd_options"),
+        ({"ccd_options": "float32"}, "ccd_options"),
     ],
 )
 def test_bad_input_raises_value_error_naming_the_argument(kwargs, name):
@@ -406,6 +410,44 @@ def test_rigid_box_corner_on_ground_plane_matches_finite_differences(friction):
     assert res.stats["contact_substeps"] >= 2 and res.stats["failsafe_substeps"] == 0
     fd = _fd_jacobian(model, 10, 4, qd0, "body", rows, **plain)
     assert _rel(jac, fd) < GRAD_RTOL
+
+
+def test_box_at_rest_with_sticking_friction_matches_finite_differences():
+    """A box resting face-down on a static box, from exactly zero velocity: every contact sticks
+    with a vanishing tangential velocity. The stopping impulse must be linear in it (the
+    tangential Delassus block's inverse): an effective mass along ``v_t / |v_t|`` takes its
+    direction from rounding noise at rest, and the gradient was 4 % off the finite differences."""
+    b = ModelBuilder()
+    b.add_rigid_body(*box_mesh(0.1), density=500.0, pos=(0.3, 0.0, 0.1))
+    b.add_static_mesh(*box_mesh((1.0, 1.0, 0.1)), pos=(0.0, 0.0, -0.1))
+    b.set_contact(restitution=0.2, friction=0.4)
+    model = b.finalize()
+    qd0 = torch.zeros((1, 6), dtype=torch.float64)
+    rows = [(0, c) for c in range(7)]
+    jac, res = _jacobian(model, 2, 8, qd0, "body", rows)
+    assert res.stats["contact_substeps"] == 16 and res.stats["failsafe_substeps"] == 0
+    fd = _fd_jacobian(model, 2, 8, qd0, "body", rows)
+    assert _rel(jac, fd) < GRAD_RTOL
+    # friction holds the box: a tangential kick moves it less than free flight would (2 DT)
+    assert 0.0 < jac[0, 3] < 0.5 * 2 * DT
+
+
+def test_float32_ccd_decisions_keep_the_gradient_exact():
+    """The narrow phase's knobs decide contacts only (a forward-only generated variant, off the
+    tape): with float32 CCD and a 4-iteration root cap the particle still bounces off the
+    tilted box, and the replayed float64 gradient matches the same rollout's central
+    differences."""
+    model = _particle_on_tilted_box(0.0, (0.3, 0.1, -2.0))
+    v0 = torch.tensor([[0.3, 0.1, -2.0]], dtype=torch.float64)
+    rows = [(0, c) for c in range(3)]
+    knobs = {"ccd_options": {"precision": "float32", "max_iterations": 4}}
+    jac, res = _jacobian(model, 20, 4, v0, "particle", rows, **knobs)
+    assert res.stats["contact_substeps"] >= 1 and res.stats["failsafe_substeps"] == 0
+    assert res.particle_qd[:, 0, 2].max() > 0.0  # bounced
+    fd = _fd_jacobian(model, 20, 4, v0, "particle", rows, **knobs)
+    assert _rel(jac, fd) < GRAD_RTOL
+    plain, _ = _jacobian(model, 20, 4, v0, "particle", rows)
+    np.testing.assert_allclose(jac, plain, rtol=1e-6)  # the same contact, replayed in float64
 
 
 def test_checkpointed_backward_with_a_rigid_body_equals_the_full_tape():

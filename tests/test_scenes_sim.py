@@ -135,6 +135,15 @@ def test_cli_options():
     with pytest.raises(SystemExit):
         parser.parse_args(["--scale", "0"])
     assert parser.parse_args(["--scale", "1e-3"]).scale == 1e-3
+    assert sim_common.ccd_options(args) == {}  # the defaults run the narrow phase as written
+    knobs = parser.parse_args(["--ccd-precision", "float32", "--ccd-tolerance-scale", "0.5",
+                               "--root-max-iterations", "6", "--root-tolerance", "1e-9"])
+    assert sim_common.ccd_options(knobs) == {"precision": "float32", "tolerance_scale": 0.5, "max_iterations": 6,
+                                             "tolerance": 1e-9}
+    for bad in (["--ccd-precision", "float16"], ["--ccd-tolerance-scale", "0"], ["--root-max-iterations", "0"],
+                ["--root-tolerance", "nan"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(bad)
 
 
 def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
@@ -231,3 +240,15 @@ def test_grazing_scene_rejects_a_one_point_sweep(tmp_path):
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "--points" in proc.stderr
     assert not out.exists()
+
+
+def test_float32_ccd_decisions_keep_rigid_toss_penetration_free():
+    """``--ccd-precision float32 --root-max-iterations 8``: the contacts are decided by the
+    float32 narrow phase (the summary says so), the independent float64 checker finds no
+    penetration, and energy stays bounded."""
+    args = sim_common.default_args(steps=STEPS, ccd_precision="float32", root_max_iterations=8)
+    summary, _ = sim_common.simulate(rigid_toss.build, args, None, name="rigid_toss", progress=False)
+    assert summary["ccd_options"] == {"precision": "float32", "max_iterations": 8}
+    assert summary["contacts"] > 0
+    assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0
+    assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.01
