@@ -47,6 +47,7 @@ import numpy as np
 
 from scenes.optim import GuardedAdam, parse_methods, reported_iterate, run_cma
 from scenes.registry import int_at_least
+from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
 NAME = "bank_shot"
 DESCRIPTION = "Newton's diffsim_ball: bounce off the floor and a wall onto a target (exact CCD, lifted events, CMA-ES)"
@@ -118,18 +119,20 @@ def events_of(model):
             for tri in front_triangles(model)]
 
 
-def simulate(model, v, *, events=(), unmollified=False, grad=False):
-    """(initial velocity tensor (1, 3), rollout result) for ``v``: a (3,) array or a tensor."""
+def simulate(model, v, *, events=(), unmollified=False, grad=False, settings: RolloutSettings | None = None):
+    """(initial velocity tensor (1, 3), rollout result) for ``v``: a (3,) array or a tensor;
+    ``settings``: substeps, ``M`` and CCD knobs other than the scene's (``--substeps``,
+    ``--max-derivative``, ``--ccd-*``)."""
     import torch
 
-    from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
+    from sim.rollout import rollout
 
     if isinstance(v, torch.Tensor):
         x = v
     else:
         x = torch.tensor(np.asarray(v, dtype=np.float64)[None], dtype=torch.float64, requires_grad=grad)
-    kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
-    return x, rollout(model, FRAMES, DT, SUBSTEPS, particle_qd=x, events=list(events), **kw)
+    substeps, kw = (settings or RolloutSettings()).rollout_arguments(SUBSTEPS, unmollified)
+    return x, rollout(model, FRAMES, DT, substeps, particle_qd=x, events=list(events), **kw)
 
 
 def bounces(res) -> dict[str, int]:
@@ -192,13 +195,14 @@ def miss_loss(res):
     return best[0], best[1]
 
 
-def optimise(model, start, iters: int, method: str = "proposed", callback=None) -> dict[str, Any]:
+def optimise(model, start, iters: int, method: str = "proposed", callback=None,
+             settings: RolloutSettings | None = None) -> dict[str, Any]:
     """Adam (``proposed``, ``baseline``) or CMA-ES (``cma``) from ``start`` [m/s] (see the module
     docstring). Returns the run's figures and its history (one entry per rollout)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "cma":
-        return _optimise_cma(model, start, iters)
+        return _optimise_cma(model, start, iters, settings)
     import torch
 
     unmollified = method == "baseline"
@@ -210,7 +214,7 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None) 
     t0 = time.perf_counter()
     for it in range(iters + 1):
         opt.zero_grad()
-        _, res = simulate(model, v, events=events, unmollified=unmollified)
+        _, res = simulate(model, v, events=events, unmollified=unmollified, settings=settings)
         hits = bounces(res)
         dist = distance(res)
         wall = banked(hits)
@@ -263,22 +267,22 @@ def _result(history, last, reached, wall_time):
     }
 
 
-def task_loss(model, v) -> tuple[float, Any]:
+def task_loss(model, v, settings: RolloutSettings | None = None) -> tuple[float, Any]:
     """The proposed method's loss as a plain value (CMA-ES): the squared distance when the wall
     is hit, ``MISS_OFFSET`` plus the event loss when it is missed. Returns (loss, rollout)."""
-    _, res = simulate(model, v, events=events_of(model))
+    _, res = simulate(model, v, events=events_of(model), settings=settings)
     if banked(bounces(res)):
         return float(_distance_loss(res)), res
     return MISS_OFFSET + float(miss_loss(res)[0]), res
 
 
-def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
+def _optimise_cma(model, start, iters: int, settings: RolloutSettings | None = None) -> dict[str, Any]:
     history = _history()
     t0 = time.perf_counter()
     best = [np.inf, None]
 
     def evaluate(x):
-        f, res = task_loss(model, x)
+        f, res = task_loss(model, x, settings)
         hits = bounces(res)
         dist = distance(res)
         history["loss"].append(f)
@@ -330,6 +334,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "'seeded': a miss drawn from --seed (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {','.join(METHODS)} (default all)")
+    add_rollout_arguments(parser, SUBSTEPS)
 
 
 def _log_world(log: Any, model) -> None:
@@ -349,13 +354,14 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     import rerun as rr
 
     methods = parse_methods(args.methods, METHODS)
+    settings = rollout_settings(args)
     model = build()
     _log_world(log, model)
     start = seeded_start(model, args.seed) if args.start == "seeded" else STARTS[args.start]
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:
-        result = optimise(model, start, args.iters, method)
+        result = optimise(model, start, args.iters, method, settings=settings)
         h = result.pop("history")
         frames = {"iteration": np.arange(len(h["loss"]))}
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]), sequence=frames)
@@ -365,4 +371,5 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
             log.stream.log(f"/iterates/{method}/path", rr.LineStrips3D([path], colors=[colors[method]]))
         out[method] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in result.items()}
     return {"scene": NAME, "start": args.start if args.start != "seeded" else f"seed {args.seed}", "start_velocity": list(start), "target": list(TARGET),
-            "iters": args.iters, "methods": out}
+            "iters": args.iters, "substeps": settings.substeps, "max_derivative": settings.max_derivative,
+            "ccd_options": settings.ccd_options, "methods": out}

@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from scenes.optim import parse_methods, run_cma
 from scenes.registry import int_at_least
+from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
 NAME = "cloth_toss"
 DESCRIPTION = "Optimise a cloth's initial linear and angular velocity so it lands draped over a sphere"
@@ -73,10 +74,12 @@ class Problem:
     middle: int  # the middle particle's index
     top: np.ndarray  # (3,) the target of the middle particle [m]
     u0: np.ndarray  # (6,) the start's (v [m/s], omega [rad/s])
+    settings: RolloutSettings = field(default_factory=RolloutSettings)  # substeps, M, CCD knobs
 
 
-def build(seed: int = 0, cells: int = CELLS) -> Problem:
-    """The scene for ``seed`` (see the module docstring)."""
+def build(seed: int = 0, cells: int = CELLS, settings: RolloutSettings | None = None) -> Problem:
+    """The scene for ``seed`` (see the module docstring); ``settings``: the rollouts' substeps,
+    ``M`` and CCD knobs when not the scene's (``--substeps``, ``--max-derivative``, ``--ccd-*``)."""
     from sim.builder import ModelBuilder
     from sim.mesh_io import icosphere
 
@@ -107,7 +110,7 @@ def build(seed: int = 0, cells: int = CELLS) -> Problem:
     v[2] += 0.5 * g * FLIGHT_TIME
     axis = rng.normal(size=3)
     omega = rng.uniform(*START_SPIN) * axis / np.linalg.norm(axis)
-    return Problem(seed, model, rest, centroid, middle, top, np.concatenate([v, omega]))
+    return Problem(seed, model, rest, centroid, middle, top, np.concatenate([v, omega]), settings or RolloutSettings())
 
 
 def velocities(problem: Problem, u):
@@ -119,14 +122,15 @@ def velocities(problem: Problem, u):
 
 
 def simulate(problem: Problem, u, *, grad: bool = False, unmollified: bool = False):
-    """(u tensor, rollout result) of the throw ``u`` (6,) (array, or a torch tensor used as is)."""
+    """(u tensor, rollout result) of the throw ``u`` (6,) (array, or a torch tensor used as is),
+    with the problem's :class:`scenes.sim_common.RolloutSettings`."""
     import torch
 
-    from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE, rollout
+    from sim.rollout import rollout
 
     x = u if isinstance(u, torch.Tensor) else torch.tensor(np.asarray(u, dtype=np.float64), requires_grad=grad)
-    kw = {"max_derivative": UNMOLLIFIED_MAX_DERIVATIVE} if unmollified else {}
-    return x, rollout(problem.model, STEPS, DT, SUBSTEPS, particle_qd=velocities(problem, x), **kw)
+    substeps, kw = problem.settings.rollout_arguments(SUBSTEPS, unmollified)
+    return x, rollout(problem.model, STEPS, DT, substeps, particle_qd=velocities(problem, x), **kw)
 
 
 def drape_loss(problem: Problem, res):
@@ -232,6 +236,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated subset of {','.join(METHODS)} (default %(default)s)")
     parser.add_argument("--cloth-res", type=int_at_least(2), default=CELLS,
                         help="cloth grid cells per side (default %(default)s)")
+    add_rollout_arguments(parser, SUBSTEPS)
 
 
 def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
@@ -243,7 +248,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     import torch
 
     methods = parse_methods(args.methods, METHODS)
-    problem = build(args.seed, args.cloth_res)
+    problem = build(args.seed, args.cloth_res, rollout_settings(args))
     model = problem.model
     rec = log.stream
     tris = model.tri_indices.numpy().reshape(-1, 3)
@@ -274,4 +279,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
             rec.set_time("frame", sequence=f)
             rec.log(f"/best/{method}/cloth", rr.Mesh3D.from_fields(vertex_positions=q))
         out[method] = {k: v for k, v in result.items()}
-    return {"scene": NAME, "seed": args.seed, "start": problem.u0.tolist(), "iters": args.iters, "methods": out}
+    settings = problem.settings
+    return {"scene": NAME, "seed": args.seed, "start": problem.u0.tolist(), "iters": args.iters,
+            "substeps": settings.substeps, "max_derivative": settings.max_derivative,
+            "ccd_options": settings.ccd_options, "methods": out}

@@ -24,6 +24,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -120,6 +121,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--collision-rounds", type=positive_int, default=DEFAULT_COLLISION_ROUNDS,
                         help="CCD + impulse rounds per substep before the rigid impact-zone fail-safe "
                              f"(>= 1; default {DEFAULT_COLLISION_ROUNDS})")
+    add_ccd_arguments(parser)
+    parser.add_argument("--contact-passes", type=non_negative_int, default=None,
+                        help="implicit integrator: constrained re-solves per substep for the particles in contact "
+                             "(0 = collision response after the solve only; default 1)")
+
+
+def add_ccd_arguments(parser: argparse.ArgumentParser) -> None:
+    """The narrow-phase knobs that decide CCD contacts (``--ccd-*``, ``--root-*``; read back by
+    :func:`ccd_options`)."""
     parser.add_argument("--ccd-precision", choices=CCD_PRECISIONS, default="float64",
                         help="precision of the narrow phase (and its root solver) that decides the CCD contacts; "
                              "the replayed times of impact and everything else stay float64 (default %(default)s)")
@@ -130,9 +140,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the narrow phase's Newton-bisection iteration cap per root (default 256)")
     parser.add_argument("--root-tolerance", type=positive_float, default=None,
                         help="the narrow phase's relative Newton step tolerance (default 2 ulp of the precision)")
-    parser.add_argument("--contact-passes", type=non_negative_int, default=None,
-                        help="implicit integrator: constrained re-solves per substep for the particles in contact "
-                             "(0 = collision response after the solve only; default 1)")
+
+
+def add_rollout_arguments(parser: argparse.ArgumentParser, substeps: int) -> None:
+    """Options of the scenes that optimise through :func:`sim.rollout.rollout`: ``--substeps``,
+    ``--max-derivative`` (``M``) and the CCD knobs (read back by :func:`rollout_settings`)."""
+    from collision.roots import DEFAULT_MAX_DERIVATIVE
+
+    parser.add_argument("--substeps", type=positive_int, default=substeps,
+                        help=f"substeps per frame (>= 1; default {substeps})")
+    parser.add_argument("--max-derivative", type=positive_float, default=DEFAULT_MAX_DERIVATIVE,
+                        help="the robust-division bound M of the times of impact's derivative "
+                             "(default %(default)g)")
+    add_ccd_arguments(parser)
+
+
+@dataclass(frozen=True)
+class RolloutSettings:
+    """How an inverse scene's rollouts run (:func:`rollout_settings`): ``substeps`` per frame
+    (None: the scene's own), ``max_derivative`` ``M`` (None: the rollout's default) and the
+    collision handler's ``ccd_options``."""
+
+    substeps: int | None = None
+    max_derivative: float | None = None
+    ccd_options: dict = field(default_factory=dict)
+
+    def rollout_arguments(self, substeps: int, unmollified: bool = False) -> tuple[int, dict]:
+        """(substeps, keyword arguments of :func:`sim.rollout.rollout`) for a scene whose own
+        substeps are ``substeps``; ``unmollified`` turns the robust division off (baselines)."""
+        from sim.rollout import UNMOLLIFIED_MAX_DERIVATIVE
+
+        kw: dict[str, Any] = {}
+        if unmollified:
+            kw["max_derivative"] = UNMOLLIFIED_MAX_DERIVATIVE
+        elif self.max_derivative is not None:
+            kw["max_derivative"] = self.max_derivative
+        if self.ccd_options:
+            kw["ccd_options"] = dict(self.ccd_options)
+        return (self.substeps or substeps), kw
+
+
+def rollout_settings(args: argparse.Namespace) -> RolloutSettings:
+    """The :class:`RolloutSettings` of an inverse scene's parsed options."""
+    return RolloutSettings(getattr(args, "substeps", None), getattr(args, "max_derivative", None), ccd_options(args))
 
 
 def default_args(**overrides: Any) -> argparse.Namespace:

@@ -151,3 +151,30 @@ def test_seeded_starts_miss_the_wall_and_repeat(model):
         hits = B.bounces(B.simulate(model, v)[1])
         assert hits["floor"] >= 1 and hits["wall"] == 0
         assert tuple(v) == B.seeded_start(model, seed)
+
+
+def test_rollout_knobs_reach_the_rollout(model):
+    """``--substeps 4 --max-derivative 10 --ccd-precision float32`` parse into settings that run
+    exactly the rollout called with them directly, and still bank off floor and wall."""
+    import argparse
+
+    import torch
+
+    from scenes.sim_common import rollout_settings
+    from sim.rollout import rollout
+
+    parser = argparse.ArgumentParser()
+    B.add_arguments(parser)
+    assert rollout_settings(parser.parse_args([])).substeps == B.SUBSTEPS
+    settings = rollout_settings(parser.parse_args(["--substeps", "4", "--max-derivative", "10",
+                                                   "--ccd-precision", "float32"]))
+    assert (settings.substeps, settings.max_derivative, settings.ccd_options) == (4, 10.0, {"precision": "float32"})
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--max-derivative", "0"])
+    v = torch.tensor([B.STARTS["newton"]], dtype=torch.float64)
+    _, res = B.simulate(model, v, settings=settings)
+    assert B.bounces(res) == {"floor": 1, "wall": 1}
+    direct = rollout(model, B.FRAMES, B.DT, 4, particle_qd=v, max_derivative=10.0,
+                     ccd_options={"precision": "float32"})
+    np.testing.assert_array_equal(res.particle_q.numpy(), direct.particle_q.numpy())
+    assert not np.array_equal(res.particle_q.numpy(), B.simulate(model, v)[1].particle_q.numpy())  # 8 substeps

@@ -76,11 +76,12 @@ def test_unknown_method_is_rejected(problem):
 def test_cli_writes_a_recording_and_reports_each_method(tmp_path):
     out = tmp_path / "toss.rrd"
     proc = subprocess.run([sys.executable, "-m", "scenes", "cloth_toss", "--out", str(out), "--iters", "2",
-                           "--methods", "proposed,cma", "--cloth-res", "4"],
+                           "--methods", "proposed,cma", "--cloth-res", "4", "--substeps", "6", "--max-derivative", "100"],
                           check=False, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert set(summary["methods"]) == {"proposed", "cma"}
+    assert (summary["substeps"], summary["max_derivative"], summary["ccd_options"]) == (6, 100.0, {})
     for figures in summary["methods"].values():
         assert figures["rollouts"] == 2 and np.isfinite(figures["final_loss"])
     assert out.stat().st_size > 0
