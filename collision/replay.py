@@ -182,7 +182,7 @@ class ContactReplay:
         (fraction of the substep), ``plane_ids``. ``particle_time`` / ``body_time``: host times
         of impact already assigned to each owner (inf for none). ``nearest_slot``: take the
         cubic's root nearest the detected fraction rather than the one in the ``sources`` slot
-        (for a narrow phase that is not the float64 one, whose slots need not match).
+        (for a narrow phase other than the float64 one as written, whose slots need not match).
         """
         c = len(rows["kinds"])
         toi = self._zeros(c, wp.float64)

@@ -793,7 +793,9 @@ def friction_impulses_kernel(
     vanishing ``j_s``). The branch is taken here, per evaluation. ``j_s`` is linear in ``v_t``
     (the same for any basis ``T``), so the sticking impulse is smooth at ``v_t = 0`` (a body at
     rest): an effective mass along ``v_t / |v_t|`` would depend on the direction of a vanishing
-    vector, and its derivative there on rounding noise."""
+    vector, and its derivative there on rounding noise. Where ``K`` is anisotropic (a rigid
+    body's lever arm) ``j_s`` is not parallel to ``-v_t``, so the impulse changes direction, a
+    jump, where a contact switches from sticking to sliding (a decision, like any contact's)."""
     c = wp.tid()
     zero = wp.float64(0.0)
     n = normals[c]
@@ -815,11 +817,14 @@ def friction_impulses_kernel(
             b1 = wp.dot(t1, vrel)
             b2 = wp.dot(t2, vrel)
             det = a11 * a22 - a12 * a12
-            x1 = wp.float64(2.0) * b1 / trace
-            x2 = wp.float64(2.0) * b2 / trace
-            if det > wp.float64(1e-12) * trace * trace:
-                x1 = (a22 * b1 - a12 * b2) / det
-                x2 = (a11 * b2 - a12 * b1) / det
+            if det <= wp.float64(1e-12) * trace * trace:
+                # (nearly) rank-deficient block: regularised by 1e-6 of its trace, a bounded
+                # impulse that never overshoots the stop along the stiff direction
+                a11 = a11 + wp.float64(1e-6) * trace
+                a22 = a22 + wp.float64(1e-6) * trace
+                det = a11 * a22 - a12 * a12
+            x1 = (a22 * b1 - a12 * b2) / det
+            x2 = (a11 * b2 - a12 * b1) / det
             stop = -share[c] * (x1 * t1 + x2 * t2)
             limit = friction * jn
             if wp.length(stop) <= limit:
@@ -828,7 +833,7 @@ def friction_impulses_kernel(
                 # Coulomb: sliding friction opposes the sliding velocity (for an anisotropic K
                 # the stopping impulse does not, and its projection on the cone would brake a
                 # sliding body by less than mu j_n)
-                vt = vrel - wp.dot(vrel, n) * n
+                vt = b1 * t1 + b2 * t2  # the slip the stick test saw (non-zero: j_s is not)
                 impulses[c] = (-limit / wp.length(vt)) * vt
 
 

@@ -249,6 +249,12 @@ def test_float32_ccd_decisions_keep_rigid_toss_penetration_free():
     args = sim_common.default_args(steps=STEPS, ccd_precision="float32", root_max_iterations=8)
     summary, _ = sim_common.simulate(rigid_toss.build, args, None, name="rigid_toss", progress=False)
     assert summary["ccd_options"] == {"precision": "float32", "max_iterations": 8}
+    # and the handler's narrow phase really runs the float32 variant
+    from collision.response import ImpulseCollisionHandler
+    from scenes.sim_common import build_model, ccd_options
+
+    narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args))._narrow
+    assert narrow._float32 and narrow.settings.max_iterations == 8
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0
     assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.01
