@@ -73,26 +73,25 @@ def best_of(fn, repeats=3):
     return best, out
 
 
-def companion_eigvals(p):
-    """All roots of each cubic by eigenvalues of its (N, 3, 3) companion matrix (in p's dtype)."""
-    n = len(p)
-    comp = np.zeros((n, 3, 3), dtype=p.dtype)
+def companion(p):
+    """(N, 3, 3) companion matrices of the (N, 4) cubics ``p`` (in p's dtype)."""
+    comp = np.zeros((len(p), 3, 3), dtype=p.dtype)
     comp[:, 0, :] = -p[:, 1:] / p[:, :1]
     comp[:, 1, 0] = 1.0
     comp[:, 2, 1] = 1.0
-    return np.linalg.eigvals(comp)
+    return comp
+
+
+def companion_eigvals(p):
+    """All roots of each cubic by eigenvalues of its companion matrix (numpy, in p's dtype)."""
+    return np.linalg.eigvals(companion(p))
 
 
 def torch_eigvals(p):
     """Companion eigenvalues of (N, 4) float32 cubics with torch (single-precision LAPACK)."""
     import torch
 
-    n = len(p)
-    comp = np.zeros((n, 3, 3), dtype=p.dtype)
-    comp[:, 0, :] = -p[:, 1:] / p[:, :1]
-    comp[:, 1, 0] = 1.0
-    comp[:, 2, 1] = 1.0
-    return torch.linalg.eigvals(torch.from_numpy(comp)).numpy()
+    return torch.linalg.eigvals(torch.from_numpy(companion(p))).numpy()
 
 
 def roots_float32(row):

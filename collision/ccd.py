@@ -83,6 +83,23 @@ def _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance):
     return mod
 
 
+def _is_float32(k) -> bool:
+    """Whether the narrow-phase kernels ``k`` (:func:`_ccd_kernels`) are a float32 variant."""
+    return k is not _k and k.mat83d._wp_scalar_type_ is wp.float32
+
+
+def _as_float32(values, name: str) -> np.ndarray:
+    """``values`` (an array, contiguous, or a scalar) rounded to float32; a ValueError naming
+    ``name`` if any overflows."""
+    with np.errstate(over="ignore"):
+        rounded = np.asarray(values, dtype=np.float32)
+    if rounded.ndim:
+        rounded = np.ascontiguousarray(rounded)
+    if not np.isfinite(rounded).all():
+        raise ValueError(f"{name} overflows float32 (precision='float32')")
+    return rounded
+
+
 def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, precision: str = "float64",
                  tolerance_scale: float = 1.0, max_iterations=None, tolerance=None):
     """Batched narrow phase on stacked queries.
@@ -118,14 +135,10 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
     toi = np.full(n, np.inf)
     source = np.full(n, -1, dtype=np.int32)
     scalar, real = wp.float64, np.float64
-    if k is not _k and k.mat83d._wp_scalar_type_ is wp.float32:
+    if _is_float32(k):
         scalar, real = wp.float32, np.float32
-        with np.errstate(over="ignore"):
-            queries = np.ascontiguousarray(queries, dtype=np.float32)
-        if not np.isfinite(queries).all():
-            raise ValueError("queries: positions overflow float32 (precision='float32')")
-        if not np.isfinite(np.float32(t)):
-            raise ValueError(f"thickness overflows float32, got {thickness!r}")
+        queries = _as_float32(queries, "queries")
+        _as_float32(t, "thickness")
         toi = np.full(n, np.inf, dtype=np.float32)
     if n:
         wp.launch(
@@ -184,7 +197,7 @@ class CandidateNarrowPhase:
         init_warp()
         self.settings = _variants.check_settings(precision, max_iterations, tolerance, tolerance_scale)
         self._kernels = _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
-        self._float32 = self._kernels is not _k and self._kernels.mat83d._wp_scalar_type_ is wp.float32
+        self._float32 = _is_float32(self._kernels)
         self._real = wp.float32 if self._float32 else wp.float64
         self.broad_phase = broad_phase
         dev = self.device = broad_phase.device
@@ -278,13 +291,8 @@ class CandidateNarrowPhase:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
         buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
         if self._float32:
-            with np.errstate(over="ignore"):
-                x0_32 = np.asarray(x0, dtype=np.float32)
-                x1_32 = np.asarray(x1, dtype=np.float32)
-            if not (np.isfinite(x0_32).all() and np.isfinite(x1_32).all() and np.isfinite(np.float32(t))):
-                raise ValueError("x0, x1: positions (or the thickness) overflow float32 (precision='float32')")
-            xa, xb = upload(self._x0_32, x0_32), upload(self._x1_32, x1_32)
-            t = float(np.float32(t))
+            xa, xb = upload(self._x0_32, _as_float32(x0, "x0")), upload(self._x1_32, _as_float32(x1, "x1"))
+            t = float(_as_float32(t, "thickness"))
 
         def launch(kind, pairs, n):
             self._launches.launch(("ccd", kind), self._kernels.pair_ccd_kernel, n,

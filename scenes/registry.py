@@ -128,9 +128,14 @@ def add_optimisation_arguments(
                         help=f"optimiser steps (>= 1; default {default_iters})")
     parser.add_argument("--lr", type=positive_float, default=default_lr,
                         help=f"Adam learning rate (default {default_lr:g})")
-    parser.add_argument("--max-derivative", type=positive_float, default=default_max_derivative,
-                        dest="max_derivative",
-                        help=f"M of the robust division (default {default_max_derivative:g})")
+    add_max_derivative_argument(parser, default_max_derivative)
+
+
+def add_max_derivative_argument(parser: argparse.ArgumentParser, default: float, note: str = "") -> None:
+    """``--max-derivative``: ``M``, the robust division's bound on the roots' derivatives (> 0);
+    ``note`` is appended to the help."""
+    parser.add_argument("--max-derivative", type=positive_float, default=default, dest="max_derivative",
+                        help=f"M of the robust division (default {default:g}){note}")
 
 
 def jsonable(value: Any) -> Any:

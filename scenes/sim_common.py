@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from scenes.registry import (
+    add_max_derivative_argument,
     non_negative_float,
     non_negative_int,
     positive_float,
@@ -149,9 +150,7 @@ def add_rollout_arguments(parser: argparse.ArgumentParser, substeps: int) -> Non
 
     parser.add_argument("--substeps", type=positive_int, default=substeps,
                         help=f"substeps per frame (>= 1; default {substeps})")
-    parser.add_argument("--max-derivative", type=positive_float, default=DEFAULT_MAX_DERIVATIVE,
-                        help="the robust-division bound M of the times of impact's derivative "
-                             "(default %(default)g)")
+    add_max_derivative_argument(parser, DEFAULT_MAX_DERIVATIVE, "; the baseline is unmollified")
     add_ccd_arguments(parser)
 
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from scenes.optim import GuardedAdam, reported_iterate, run_cma
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from scenes.registry import int_at_least, positive_float
+from scenes.registry import add_max_derivative_argument, int_at_least
 
 NAME = "tunnel"
 DESCRIPTION = "Optimise a particle's initial velocity from a miss to a hit of a spinning tetrahedron (lifted events)"
@@ -467,9 +467,7 @@ def _result(history, last: int, reached, stalled: bool, rollouts: int, wall_time
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
                         help="Adam iterations per method (default %(default)s)")
-    parser.add_argument("--max-derivative", type=positive_float, default=DEFAULT_MAX_DERIVATIVE,
-                        help="M of the proposed method's mollified derivatives (default %(default)g; "
-                             "the baseline is unmollified)")
+    add_max_derivative_argument(parser, DEFAULT_MAX_DERIVATIVE, "; the baseline is unmollified")
 
 
 def _figures(run: dict[str, Any]) -> dict[str, Any]:

@@ -534,3 +534,19 @@ def test_candidate_narrow_phase_bad_knob_is_a_value_error_naming_it():
                           ({"max_iterations": 0}, "max_iterations"), ({"tolerance": float("nan")}, "tolerance")):
         with pytest.raises(ValueError, match=name):
             CandidateNarrowPhase(bp, **options)
+
+
+def test_float32_narrow_phase_rejects_positions_that_overflow_float32():
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, narrow_phase
+
+    queries = np.zeros((1, 8, 3))
+    queries[0, 5, 0] = 1e300
+    with pytest.raises(ValueError, match="queries overflows float32"):
+        narrow_phase(0, queries, precision="float32")
+    x0, x1, faces = _crumpled_sheets(0)
+    narrow = CandidateNarrowPhase(BroadPhase(faces, mesh_edges(faces), num_vertices=len(x0)), precision="float32")
+    far = x1.copy()
+    far[0] = 1e39  # finite in float64, not in float32
+    with pytest.raises(ValueError, match="x1 overflows float32"):
+        narrow.ccd(x0, far)
