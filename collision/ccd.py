@@ -168,11 +168,13 @@ class CandidateNarrowPhase:
 
     A collision response that runs several rounds per step can share one broad-phase query
     between them: :meth:`cover` queries the swept boxes from the start positions to the
-    predicted end positions, widened by a margin ``m``; a later :meth:`near` (``max_distance <=
-    m`` at the same start positions) or :meth:`ccd` with thickness ``t`` (end positions within
-    ``(m - t) / 2``, per coordinate, of the predicted ones) reuses those candidates, which then
-    hold every pair the query of its own would have found (a vertex's swept box grows by at most
-    the distance its end moves, and a pair's two boxes by twice that), as long as no other query
+    predicted end positions, widened by a margin ``m``; a later :meth:`near` with ``max_distance
+    = d <= m`` (every position within ``(m - d) / 2``, per coordinate, of the box of its
+    vertex's covered motion) or :meth:`ccd` with thickness ``t`` (start and end positions
+    within ``(m - t) / 2`` of those boxes; ``COVER_SAFETY`` instead of 1/2 in both) reuses those
+    candidates, which then hold every pair the query of its own would have found (a
+    primitive's swept box grows by at most how far its vertices' ends lie outside their covered
+    boxes, and a pair's two boxes by twice that), as long as no other query
     of the broad phase has refilled its buffers since. Anything else queries afresh (and drops
     the cover). The hits are the same either way.
 
@@ -221,26 +223,53 @@ class CandidateNarrowPhase:
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
         self.reuses = 0  # calls answered from a cover
+        self.kept_covers = 0  # cover() calls that kept the current cover (its slack)
 
-    def cover(self, x0, x1, margin: float) -> None:
+    def cover(self, x0, x1, margin: float, slack: float = 0.0) -> None:
         """One broad-phase query of the motion ``x0 -> x1`` ((V, 3) float64) widened by
-        ``margin`` [m] (>= 0), kept for the calls that it covers (see the class docstring)."""
+        ``margin`` [m] (>= 0), kept for the calls that it covers (see the class docstring).
+
+        ``slack`` [m] (>= 0, below ``COVER_SAFETY margin``): keep the current cover instead when
+        it has this margin, its buffers are still the broad phase's and both ends of every
+        vertex's new motion lie within ``slack`` (per coordinate) of the box of its covered
+        motion (:attr:`kept_covers` counts these). Resting contact moves far less than a margin
+        per substep, so one query then serves many substeps; the calls it answers still check
+        their own motion against the covered one, so the hits are the same as with a fresh
+        cover."""
         x0 = np.asarray(x0, dtype=np.float64)
         x1 = np.asarray(x1, dtype=np.float64)
+        c = self._cover
+        if slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count \
+                and c[1].shape == x0.shape and self._outside(x0, x1, c) <= slack:
+            self.kept_covers += 1
+            return
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
         self.queries += 1
-        self._cover = (buffers, x0.copy(), x1.copy(), float(margin), self.broad_phase.query_count)
+        self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count)
+
+    @staticmethod
+    def _outside(x0, x1, cover) -> float:
+        """How far (largest coordinate) the ends ``x0``, ``x1`` of the vertices' motion lie
+        outside the boxes of their covered motion (0 inside)."""
+        lo, hi = cover[1], cover[2]
+        out = 0.0
+        for x in (x0, x1):
+            if len(x):
+                out = max(out, float(np.max(lo - x)), float(np.max(x - hi)))
+        return out
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):
         """Candidate buffers and the device positions (start, end) for the motion ``x0 -> x1``
         and the inflation: from the cover when it holds them, else a fresh query."""
         c = self._cover
         # a pair within `inflation` at the new motion is within inflation + 2 x (how far an end
-        # moved) at the covered one; and nobody else may have refilled the broad phase's buffers
-        if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count and np.array_equal(x0, c[1]) and (
-                not end_moves or np.max(np.abs(x1 - c[2]), initial=0.0) <= self.COVER_SAFETY * (c[3] - inflation)):
-            self.reuses += 1
-            return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
+        # lies outside its vertex's covered box) at the covered one (a primitive's swept box is
+        # its vertices' boxes' hull, so it grows by at most that on each side); and nobody else
+        # may have refilled the broad phase's buffers
+        if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count:
+            if self._outside(x0, x1 if end_moves else x0, c) <= self.COVER_SAFETY * (c[3] - inflation):
+                self.reuses += 1
+                return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
         self._cover = None  # the fresh query overwrites the broad phase's buffers
         self.queries += 1
         buffers = self.broad_phase.query_device(x0, x1, inflation)

@@ -103,6 +103,14 @@ and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN 
 predicted ones reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`); a round that
 moves further queries afresh."""
 
+COVER_SLACK = 1.0
+"""A substep keeps the previous substep's broad-phase query (instead of a new one) while its start
+and predicted end positions lie within this many separations ``delta`` of the covered ones (per
+coordinate): resting contact moves far less per substep, so one query serves many substeps. The
+proximity pass still has ``0.45 (COVER_MARGIN - 1) delta - COVER_SLACK delta >= 0`` of room and
+the CCD rounds ``0.45 COVER_MARGIN delta - COVER_SLACK delta``; a call beyond its room queries
+afresh, so the contacts are the same as with a query per substep."""
+
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
@@ -660,7 +668,7 @@ class ImpulseCollisionHandler:
 
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
-        self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta)
+        self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta, COVER_SLACK * delta)
         # 1. proximity contacts at the start of the substep
         kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
         if len(kind):
@@ -908,7 +916,7 @@ class ImpulseCollisionHandler:
             # one broad-phase query while the rounds' motion stays near the predicted one
             x1_pred = self._vertices(state_pred.particle_q.numpy() if P else np.zeros((0, 3)),
                                      state_pred.body_q.numpy() if B else np.zeros((0, 7)))
-            self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta)
+            self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta)
             kind, pair, off, _ = self._narrow.near(x0[:nv], delta * (1.0 + 1e-9))  # slack: exact test below
         near = np.linalg.norm(off, axis=1) < delta
         kinds.append(kind[near])

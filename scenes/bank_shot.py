@@ -75,14 +75,15 @@ METHODS = ("proposed", "baseline", "cma")
 SEEDED_SIDEWAYS, SEEDED_FORWARD, SEEDED_DOWN = (1.5, 3.5), (4.0, 6.0), (4.0, 6.0)  # [m/s] ranges of seeded misses
 
 
-def seeded_start(model, seed: int) -> tuple[float, float, float]:
+def seeded_start(model, seed: int, settings: RolloutSettings | None = None) -> tuple[float, float, float]:
     """A start [m/s] that misses the wall, drawn from ``seed`` (see the module docstring): draws
-    until the forward rollout bounces off the floor and never touches the wall."""
+    until the forward rollout (with ``settings``, as :func:`simulate`) bounces off the floor and
+    never touches the wall."""
     rng = np.random.default_rng(seed)
     for _ in range(200):
         v = np.array([rng.choice((-1.0, 1.0)) * rng.uniform(*SEEDED_SIDEWAYS), rng.uniform(*SEEDED_FORWARD),
                       -rng.uniform(*SEEDED_DOWN)])
-        hits = bounces(simulate(model, v)[1])
+        hits = bounces(simulate(model, v, settings=settings)[1])
         if hits["floor"] > 0 and hits["wall"] == 0:
             return tuple(float(x) for x in v)
     raise RuntimeError(f"bank_shot: no missing start found for seed {seed}")
@@ -305,12 +306,12 @@ def _optimise_cma(model, start, iters: int, settings: RolloutSettings | None = N
     return _result(history, last, reached, time.perf_counter() - t0)
 
 
-def gradient_check(model, v, step: float = 1e-6) -> dict[str, Any]:
+def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | None = None) -> dict[str, Any]:
     """The distance loss' gradient w.r.t. the initial velocity (rollout backward) against central
-    finite differences of the same forward (step [m/s])."""
+    finite differences of the same forward (step [m/s]; ``settings`` as :func:`simulate`)."""
     import torch
 
-    x, res = simulate(model, v, grad=True)
+    x, res = simulate(model, v, grad=True, settings=settings)
     _distance_loss(res).backward()
     analytic = x.grad.numpy()[0].copy()
     numeric = np.zeros(3)
@@ -320,7 +321,7 @@ def gradient_check(model, v, step: float = 1e-6) -> dict[str, Any]:
             vv = np.asarray(v, dtype=np.float64).copy()
             vv[k] += sign * step
             with torch.no_grad():
-                vals.append(float(_distance_loss(simulate(model, vv)[1])))
+                vals.append(float(_distance_loss(simulate(model, vv, settings=settings)[1])))
         numeric[k] = (vals[0] - vals[1]) / (2.0 * step)
     return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
             "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
@@ -357,7 +358,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     settings = rollout_settings(args)
     model = build()
     _log_world(log, model)
-    start = seeded_start(model, args.seed) if args.start == "seeded" else STARTS[args.start]
+    start = seeded_start(model, args.seed, settings) if args.start == "seeded" else STARTS[args.start]
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:

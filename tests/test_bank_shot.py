@@ -178,3 +178,25 @@ def test_rollout_knobs_reach_the_rollout(model):
                      ccd_options={"precision": "float32"})
     np.testing.assert_array_equal(res.particle_q.numpy(), direct.particle_q.numpy())
     assert not np.array_equal(res.particle_q.numpy(), B.simulate(model, v)[1].particle_q.numpy())  # 8 substeps
+
+
+def test_seeded_start_and_gradient_check_run_with_the_given_settings(model):
+    """``seeded_start`` and ``gradient_check`` take the scene's settings: the start drawn with 4
+    substeps misses the wall in the 4-substep rollout, and the gradient check at 4 substeps
+    differentiates that rollout (its analytic gradient is the 4-substep rollout's, not the
+    default 8's, and matches its central differences)."""
+    from scenes.sim_common import RolloutSettings
+
+    settings = RolloutSettings(substeps=4)
+    v = np.asarray(B.seeded_start(model, 0, settings))
+    hits = B.bounces(B.simulate(model, v, settings=settings)[1])
+    assert hits["floor"] >= 1 and hits["wall"] == 0
+    w = np.asarray(B.STARTS["newton"]) + np.array([0.003, 0.007, -0.005])
+    check = B.gradient_check(model, w, settings=settings)
+    assert check["relative_error"] < 1e-5, check
+    x, res = B.simulate(model, w, grad=True, settings=settings)
+    B._distance_loss(res).backward()
+    np.testing.assert_array_equal(check["analytic"], x.grad.numpy()[0])
+    x8, res8 = B.simulate(model, w, grad=True)
+    B._distance_loss(res8).backward()
+    assert not np.array_equal(check["analytic"], x8.grad.numpy()[0])

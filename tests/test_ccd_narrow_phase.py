@@ -468,6 +468,50 @@ def test_candidate_cover_answers_covered_calls_and_requeries_the_rest():
     assert narrow.queries == before + 1
 
 
+def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh_queries():
+    """cover(..., slack) keeps the current cover while both ends of every vertex's new motion lie
+    within the slack of the box of its covered motion (the next substep of resting contact):
+    no broad-phase query, and the proximity test and CCD of the new motion (moved start and
+    end) give exactly the hits of a fresh query and of mesh_ccd; a motion beyond the slack
+    queries afresh."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    x0, x1, faces = _crumpled_sheets(5)
+    edges = mesh_edges(faces)
+    narrow = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    fresh = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    margin, slack = 0.02, 0.005
+    narrow.cover(x0, x1, margin, slack)
+    rng = np.random.default_rng(3)
+    # the next motion starts somewhere on the covered one and ends near the covered end
+    s = rng.uniform(0.0, 1.0, size=(len(x0), 1))
+    y0 = x0 + s * (x1 - x0) + rng.uniform(-0.9 * slack, 0.9 * slack, size=x0.shape)
+    y1 = x1 + rng.uniform(-0.9 * slack, 0.9 * slack, size=x0.shape)
+    queries, kept = narrow.queries, narrow.kept_covers
+    narrow.cover(y0, y1, margin, slack)
+    assert (narrow.queries, narrow.kept_covers) == (queries, kept + 1)
+    reuses = narrow.reuses
+    got = narrow.ccd(y0, y1)
+    near = narrow.near(y0, 0.01)
+    assert narrow.reuses == reuses + 2 and narrow.queries == queries
+    for g, w in zip(got, fresh.ccd(y0, y1)):
+        np.testing.assert_array_equal(g, w)
+    for g, w in zip(near, fresh.near(y0, 0.01)):
+        np.testing.assert_array_equal(g, w)
+    assert len(near[0]) > 0
+    ref = mesh_ccd(y0, y1, faces, edges)
+    assert len(got[0]) == int(ref.vf_hit.sum() + ref.ee_hit.sum()) > 0
+    # a start moved beyond the slack (outside its covered box): a new query
+    far = y0.copy()
+    far[0] = np.maximum(x0[0], x1[0]) + 2.0 * slack
+    narrow.cover(far, y1, margin, slack)
+    assert narrow.queries == queries + 1
+    # without slack every cover queries
+    narrow.cover(far, y1, margin)
+    assert narrow.queries == queries + 2
+
+
 def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
     """With a thickness, pairs closer than it are candidates (the broad phase is inflated by
     it): two still sheets 5 cm apart and a 6 cm thickness hit as in mesh_ccd, with and without

@@ -146,6 +146,24 @@ def test_cli_options():
             parser.parse_args(bad)
 
 
+@pytest.mark.parametrize("flags, named", [(["--root-tolerance", "1e-45"], "--root-tolerance"),
+                                           (["--ccd-tolerance-scale", "1e-44"], "--ccd-tolerance-scale")])
+def test_ccd_knobs_float32_cannot_hold_are_refused_before_the_run(tmp_path, capsys, flags, named):
+    """Values each flag takes alone but float32 cannot represent are refused when the options are
+    read (exit code 2, the flag named), not by an error once the scene is running, and nothing
+    is written; with float64 the same value runs."""
+    from scenes.__main__ import main
+
+    out = tmp_path / "x.rrd"
+    with pytest.raises(SystemExit) as exc:
+        main(["rigid_toss", "--out", str(out), "--steps", "1", "--ccd-precision", "float32", *flags])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert named in err and "float32" in err
+    assert not out.exists()
+    assert main(["rigid_toss", "--out", str(out), "--steps", "1", *flags]) == 0 and out.exists()
+
+
 def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
     """A scene whose geometry is bad (a NaN vertex) fails while it is built, before the first
     frame: exit code 1, an error naming the argument, and no recording left behind."""
