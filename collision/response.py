@@ -670,6 +670,7 @@ class ImpulseCollisionHandler:
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
         self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta, COVER_SLACK * delta)
         # 1. proximity contacts at the start of the substep
+        rows = []
         kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
         if len(kind):
             d = np.linalg.norm(off, axis=1)
@@ -703,8 +704,7 @@ class ImpulseCollisionHandler:
                     n[touching] = geo
                 vn = np.einsum("cd,cd->c", vrel, n)
                 target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
-                cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
-                self._solve(cs, vp, bv, r0, inv_inertia_w)
+                rows.append((kind, pair, idx, w, n, target))
         kind, pair, idx, d = self._plane_proximity(x0, delta)
         if len(kind):
             w = np.tile([1.0, 0.0, 0.0, 0.0], (len(kind), 1))
@@ -712,7 +712,10 @@ class ImpulseCollisionHandler:
             vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
             vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
             target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
-            cs.add(kind, pair, idx, w, n, np.zeros(len(d)), target)
+            rows.append((kind, pair, idx, w, n, target))
+        if rows:  # the mesh and the plane proximity contacts, added and solved together
+            kind, pair, idx, w, n, target = (np.concatenate(c) for c in zip(*rows)) if len(rows) > 1 else rows[0]
+            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
             self._solve(cs, vp, bv, r0, inv_inertia_w)
 
         # 2-5. CCD rounds on the planned motion
