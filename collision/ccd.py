@@ -240,22 +240,25 @@ class CandidateNarrowPhase:
         x1 = np.asarray(x1, dtype=np.float64)
         c = self._cover
         if slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count \
-                and c[1].shape == x0.shape and self._outside(x0, x1, c) <= slack:
+                and c[5].shape == x0.shape and self._outside(x0, x1, c) <= slack:
             self.kept_covers += 1
             return
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
         self.queries += 1
-        self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count)
+        # the covered motion's vertex boxes (and scratch for _outside)
+        self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count,
+                       np.empty_like(x0))
 
     @staticmethod
     def _outside(x0, x1, cover) -> float:
         """How far (largest coordinate) the ends ``x0``, ``x1`` of the vertices' motion lie
-        outside the boxes of their covered motion (0 inside)."""
-        lo, hi = cover[1], cover[2]
+        outside the boxes of their covered motion (0 inside; exact: a covered end gives 0)."""
+        lo, hi, scratch = cover[1], cover[2], cover[5]
         out = 0.0
-        for x in (x0, x1):
+        for x in ((x0,) if x1 is x0 else (x0, x1)):
             if len(x):
-                out = max(out, float(np.max(lo - x)), float(np.max(x - hi)))
+                out = max(out, float(np.subtract(lo, x, out=scratch).max()),
+                          float(np.subtract(x, hi, out=scratch).max()))
         return out
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):
@@ -266,7 +269,8 @@ class CandidateNarrowPhase:
         # lies outside its vertex's covered box) at the covered one (a primitive's swept box is
         # its vertices' boxes' hull, so it grows by at most that on each side); and nobody else
         # may have refilled the broad phase's buffers
-        if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count:
+        if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count \
+                and np.shape(x0) == c[5].shape and np.shape(x1) == c[5].shape:
             if self._outside(x0, x1 if end_moves else x0, c) <= self.COVER_SAFETY * (c[3] - inflation):
                 self.reuses += 1
                 return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
