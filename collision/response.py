@@ -104,9 +104,10 @@ predicted ones reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`
 moves further queries afresh."""
 
 COVER_SLACK = 1.0
-"""A substep keeps the previous substep's broad-phase query (instead of a new one) while its start
-and predicted end positions lie within this many separations ``delta`` of the covered ones (per
-coordinate): resting contact moves far less per substep, so one query serves many substeps. The
+"""A substep keeps an earlier substep's broad-phase query (instead of a new one) while its start
+and predicted end positions lie within this many separations ``delta`` of the boxes of the
+covered motion (per coordinate): slow and resting contact moves less than that per substep, so
+one query serves several substeps. The
 proximity pass still has ``0.45 (COVER_MARGIN - 1) delta - COVER_SLACK delta >= 0`` of room and
 the CCD rounds ``0.45 COVER_MARGIN delta - COVER_SLACK delta``; a call beyond its room queries
 afresh, so the contacts are the same as with a query per substep."""
