@@ -91,7 +91,7 @@ def bank_shot(args) -> dict:
         ours = list(pool.imap(run_bank_shot, tasks))
     profile = fresh_profile("bank_shot")
     # Newton after the pool, alone on the machine (its wall time is not shared with our workers)
-    import newton_ball
+    from benchmarks import newton_ball  # the package path: `python -m benchmarks` has no benchmarks/ on sys.path
 
     newton = []
     for start in ("newton", "miss"):

@@ -460,9 +460,8 @@ def size_table(cells_list=(16, 32, 64, 128), steps: int = 40, newton_cells=(16, 
               f"{_growth_exponent(v, [r['ms'] for r in sel]):.2f}")
     newton_rows = []
     if newton_cells:
-        sys.path.insert(0, HERE)
         try:
-            import newton_cloth
+            from benchmarks import newton_cloth
         except ImportError as exc:
             print(f"Newton not available ({exc}); pip install -e '.[bench]'")
             return {"rows": rows, "newton": newton_rows}

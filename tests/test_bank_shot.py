@@ -121,14 +121,17 @@ def test_bad_methods_option_is_rejected():
 
 
 def test_inverse_benchmark_bank_shot_smoke(tmp_path):
-    """A tiny configuration of the bank_shot part of benchmarks/inverse.py (Newton included)."""
+    """A tiny configuration of the bank_shot part of benchmarks/inverse.py (Newton included), run
+    as ``python -m benchmarks.inverse``."""
     import os
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "inverse"
-    proc = subprocess.run([sys.executable, os.path.join(root, "benchmarks", "inverse.py"), "--scenes", "bank_shot",
+    # as a module of the benchmarks package, the way `python -m benchmarks --full` imports it
+    # (no benchmarks/ folder on sys.path: a bare `import newton_ball` failed there)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.inverse", "--scenes", "bank_shot",
                            "--bank-iters", "1", "--bank-seeds", "1", "--jobs", "1", "--out", str(out)],
-                          capture_output=True, text=True, timeout=900)
+                          capture_output=True, text=True, timeout=900, cwd=root)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "inverse_bank_shot.json").read_text())
     methods = {(r["start"], r["method"]) for r in data["runs"]}
