@@ -219,7 +219,7 @@ class CandidateNarrowPhase:
         if self._float32:  # the float32 narrow phase's rounded positions
             self._x0_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
             self._x1_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
-        self._cover = None  # (buffers, x0, x1, margin, broad-phase query count) of the last cover()
+        self._cover = None  # (buffers, box lo, box hi, margin, broad-phase query count, scratch) of the last cover()
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
         self.reuses = 0  # calls answered from a cover
@@ -240,7 +240,7 @@ class CandidateNarrowPhase:
         x1 = np.asarray(x1, dtype=np.float64)
         c = self._cover
         if slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count \
-                and c[5].shape == x0.shape and self._outside(x0, x1, c) <= slack:
+                and c[5].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
             self.kept_covers += 1
             return
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
@@ -257,8 +257,12 @@ class CandidateNarrowPhase:
         out = 0.0
         for x in ((x0,) if x1 is x0 else (x0, x1)):
             if len(x):
-                out = max(out, float(np.subtract(lo, x, out=scratch).max()),
-                          float(np.subtract(x, hi, out=scratch).max()))
+                below = float(np.subtract(lo, x, out=scratch).max())
+                above = float(np.subtract(x, hi, out=scratch).max())
+                if not (below <= out and above <= out):
+                    if below != below or above != above:
+                        return np.inf  # NaN: never covered, the fresh query refuses it
+                    out = max(out, below, above)
         return out
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):

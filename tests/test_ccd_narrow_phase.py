@@ -510,6 +510,16 @@ def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh
     # without slack every cover queries
     narrow.cover(far, y1, margin)
     assert narrow.queries == queries + 2
+    # a NaN position is never covered: the fresh query refuses it, naming the argument
+    bad = y1.copy()
+    bad[4, 1] = np.nan
+    with pytest.raises(ValueError, match="x1"):
+        narrow.cover(far, bad, margin, slack)
+    narrow.cover(far, y1, margin)
+    with pytest.raises(ValueError, match="x1"):
+        narrow.ccd(far, bad)
+    with pytest.raises(ValueError, match="x0"):
+        narrow.near(np.where(np.arange(len(far))[:, None] == 2, np.nan, far), 0.01)
 
 
 def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
