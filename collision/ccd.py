@@ -257,12 +257,9 @@ class CandidateNarrowPhase:
         out = 0.0
         for x in ((x0,) if x1 is x0 else (x0, x1)):
             if len(x):
-                below = float(np.subtract(lo, x, out=scratch).max())
-                above = float(np.subtract(x, hi, out=scratch).max())
-                if not (below <= out and above <= out):
-                    if below != below or above != above:
-                        return np.inf  # NaN: never covered, the fresh query refuses it
-                    out = max(out, below, above)
+                for gap in (np.subtract(lo, x, out=scratch).max(), np.subtract(x, hi, out=scratch).max()):
+                    if not gap <= out:  # NaN is never covered: the fresh query refuses it
+                        out = float(gap) if gap == gap else np.inf
         return out
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):

@@ -715,7 +715,7 @@ class ImpulseCollisionHandler:
             target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
             rows.append((kind, pair, idx, w, n, target))
         if rows:  # the mesh and the plane proximity contacts, added and solved together
-            kind, pair, idx, w, n, target = (np.concatenate(c) for c in zip(*rows)) if len(rows) > 1 else rows[0]
+            kind, pair, idx, w, n, target = (np.concatenate(c) for c in zip(*rows))
             cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
             self._solve(cs, vp, bv, r0, inv_inertia_w)
 

@@ -71,22 +71,9 @@ def _check_scene_options(parser: argparse.ArgumentParser, name: str, module, arg
         hint = " (an optimisation scene: use --iters)" if hasattr(args, "iters") else ""
         parser.error(f"--steps does not apply to scene {name!r}{hint}")
     if hasattr(args, "ccd_precision"):
-        # values each flag accepts alone but not together (a tolerance below float32's range
-        # with --ccd-precision float32): refused here, naming the flags, not when the run starts
-        from kernels.variants import check_settings
-        from scenes.sim_common import ccd_options
+        from scenes.sim_common import check_ccd_arguments
 
-        flags = {"precision": "--ccd-precision", "tolerance_scale": "--ccd-tolerance-scale",
-                 "max_iterations": "--root-max-iterations", "tolerance": "--root-tolerance"}
-        try:
-            check_settings(**ccd_options(args))
-        except ValueError as exc:
-            text = str(exc)
-            for key, flag in sorted(flags.items(), key=lambda kv: -len(kv[0])):
-                if text.startswith(key + " "):
-                    text = flag + text[len(key):]
-                    break
-            parser.error(f"{text} (with --ccd-precision {args.ccd_precision})")
+        check_ccd_arguments(parser, args)
 
 
 @contextlib.contextmanager

@@ -61,6 +61,11 @@ CCD_PRECISIONS = ("float64", "float32")
 """Precisions of the narrow phase that decides CCD contacts (``--ccd-precision``)."""
 
 
+CCD_FLAGS = {"precision": "--ccd-precision", "tolerance_scale": "--ccd-tolerance-scale",
+             "max_iterations": "--root-max-iterations", "tolerance": "--root-tolerance"}
+"""The CLI flag of each ``ccd_options`` key (:func:`add_ccd_arguments`)."""
+
+
 def ccd_options(args: argparse.Namespace) -> dict:
     """The narrow-phase knobs of ``args`` (``--ccd-*``, ``--root-*``) as the collision
     handler's ``ccd_options`` (only the non-default ones: the defaults run the kernels as
@@ -77,6 +82,22 @@ def ccd_options(args: argparse.Namespace) -> dict:
         if value is not None:
             options[key] = value
     return options
+
+
+def check_ccd_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuses (``parser.error``, exit code 2, naming the flag) CCD knob values that each flag
+    accepts alone but not together, e.g. a ``--root-tolerance`` below float32's range with
+    ``--ccd-precision float32``: before the run, not when the collision handler is built."""
+    from collision.response import check_ccd_options
+
+    try:
+        check_ccd_options(ccd_options(args))
+    except ValueError as exc:
+        text = str(exc).removeprefix("ccd_options: ")
+        key = max((k for k in CCD_FLAGS if text.startswith(k + " ")), key=len, default=None)
+        if key is not None:
+            text = CCD_FLAGS[key] + text[len(key):]
+        parser.error(f"{text} (with --ccd-precision {getattr(args, 'ccd_precision', 'float64')})")
 
 
 def warp_device(text: str) -> str:
