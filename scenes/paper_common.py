@@ -47,6 +47,10 @@ DEFAULT_MAX_DERIVATIVE = 1000.0
 """``M`` of the robust division: the paper's value for the tables and the cubic examples."""
 T_MAX = 1e150
 """Root clamp ``t_max`` (the paper's value)."""
+T_MAX_RANGE = (1.0, 1e150)
+"""``--t-max`` accepted: at least 1 (the target root 0.5 and the examples' bounded roots lie
+inside), at most the paper's 1e150 (the loss at an escaping root is ``(t_max - 0.5)^2 / 2`` and
+its gradient ``t_max M``: float64 overflows a little beyond)."""
 PRECISIONS = ("float64",)
 """Scene attribute: the paper's examples (t_max = 1e150, gradients up to 1e153) need float64."""
 SUPPORTS_STEPS = False
@@ -374,8 +378,21 @@ def views_for_start(
     }
 
 
+def t_max_argument(text: str) -> float:
+    """``argparse`` type of ``--t-max``: a float in :data:`T_MAX_RANGE`."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    low, high = T_MAX_RANGE
+    if not low <= value <= high:  # also refuses NaN
+        raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {text!r}")
+    return value
+
+
 def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> None:
-    """A paper scene's options (``--iters``, ``--lr``, ``--max-derivative``), paper defaults.
+    """A paper scene's options (``--iters``, ``--lr``, ``--max-derivative``, ``--t-max``), paper
+    defaults.
 
     Args:
         parser: Parser to extend.
@@ -385,6 +402,9 @@ def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> 
 
     add_optimisation_arguments(parser, default_iters=default_iters, default_lr=DEFAULT_LR,
                                default_max_derivative=DEFAULT_MAX_DERIVATIVE)
+    parser.add_argument("--t-max", type=t_max_argument, default=T_MAX, dest="t_max",
+                        help=f"root clamp t_max of the proposed solver: escaping roots sit at +-t_max "
+                             f"(in [{T_MAX_RANGE[0]:g}, {T_MAX_RANGE[1]:g}]; default the paper's {T_MAX:g})")
 
 
 @dataclass(frozen=True)
@@ -422,12 +442,13 @@ def run_scene(
     Entities: ``/<name>/<start>/{proposed,baseline}/...`` as written by :func:`log_method`.
 
     Args:
-        args: Parsed CLI arguments (``iters``, ``lr``, ``max_derivative``, ``seed``).
+        args: Parsed CLI arguments (``iters``, ``lr``, ``max_derivative``, ``seed``; ``t_max``,
+            default :data:`T_MAX`).
         log: An open :class:`sim.logging.RerunLogger`.
         name: Scene name (entity root ``/<name>``).
         starts: The scene's starts.
         param_names: Coefficient names.
-        run_proposed: ``run_proposed(starts, iters, lr, max_derivative, progress=...)``.
+        run_proposed: ``run_proposed(starts, iters, lr, max_derivative, t_max=..., progress=...)``.
         run_baseline: ``run_baseline(starts, iters, lr, progress=...)``.
         proposed_roots: Root names the proposed records log (for the blueprint views).
         proposed_record: ``(history, row) -> ProposedRecord`` of the proposed method.
@@ -444,13 +465,14 @@ def run_scene(
     from sim.logging import time_series_blueprint
 
     torch.manual_seed(args.seed)  # nothing is random; kept for the CLI contract
+    t_max = float(getattr(args, "t_max", T_MAX))
     root = f"/{name}"
     slots = {"proposed": tuple(proposed_roots), "baseline": (baseline_root,)}
     log.send_blueprint(time_series_blueprint({s.name: views_for_start(root, s.name, slots) for s in starts}))
     with tqdm(total=2 * (args.iters + 1), desc=name, unit="it", file=sys.stderr,
               disable=None, leave=False) as bar:
         tick = lambda _k: bar.update(1)  # noqa: E731
-        prop = run_proposed(starts, args.iters, args.lr, args.max_derivative, progress=tick)
+        prop = run_proposed(starts, args.iters, args.lr, args.max_derivative, t_max=t_max, progress=tick)
         base = run_baseline(starts, args.iters, args.lr, progress=tick)
 
     starts_summary: dict[str, Any] = {}
@@ -475,7 +497,7 @@ def run_scene(
         "iters": args.iters,
         "lr": args.lr,
         "max_derivative": args.max_derivative,
-        "t_max": T_MAX,
+        "t_max": t_max,
         "target": TARGET,
         "tol": CONVERGENCE_TOL,
         "seed": args.seed,

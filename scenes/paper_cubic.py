@@ -246,15 +246,17 @@ def run_proposed(
     lr: float = DEFAULT_LR,
     max_derivative: float = DEFAULT_MAX_DERIVATIVE,
     progress=None,
+    t_max: float = T_MAX,
 ) -> AdamRun:
     """Adam with the proposed method and branch tracking on all ``starts``.
 
-    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``).
+    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``) and
+    ``t_max`` (the root clamp: escaping roots sit at ``+-t_max``; the paper's 1e150).
 
     Returns:
         History; ``extras["roots"]`` complex ``(iters+1, B, 3)``, ``extras["slot"]`` ``(iters+1, B)``.
     """
-    return run_starts(starts, ProposedLoss(len(starts), max_derivative), iters, lr, progress)
+    return run_starts(starts, ProposedLoss(len(starts), max_derivative, t_max), iters, lr, progress)
 
 
 def run_baseline(
@@ -271,7 +273,7 @@ def run_baseline(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Scene options (``--iters``, ``--lr``, ``--max-derivative``)."""
+    """Scene options (``--iters``, ``--lr``, ``--max-derivative``, ``--t-max``)."""
     add_scene_arguments(parser, DEFAULT_ITERS)
 
 

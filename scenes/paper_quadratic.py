@@ -143,15 +143,17 @@ def run_proposed(
     lr: float = DEFAULT_LR,
     max_derivative: float = DEFAULT_MAX_DERIVATIVE,
     progress=None,
+    t_max: float = T_MAX,
 ) -> AdamRun:
     """Adam with the proposed method on all ``starts`` (used by the scene and the table tests).
 
-    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``).
+    Arguments as :func:`scenes.paper_common.run_starts`, plus ``max_derivative`` (``M``) and
+    ``t_max`` (the root clamp: escaping roots sit at ``+-t_max``; the paper's 1e150).
 
     Returns:
         History; ``extras["roots"]`` is complex ``(iters+1, B, 2)``.
     """
-    return run_starts(starts, ProposedLoss(max_derivative), iters, lr, progress)
+    return run_starts(starts, ProposedLoss(max_derivative, t_max), iters, lr, progress)
 
 
 def run_baseline(
@@ -168,7 +170,7 @@ def run_baseline(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Scene options (``--iters``, ``--lr``, ``--max-derivative``)."""
+    """Scene options (``--iters``, ``--lr``, ``--max-derivative``, ``--t-max``)."""
     add_scene_arguments(parser, DEFAULT_ITERS)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from scenes import paper_cubic, paper_quadratic
+from scenes.paper_common import start
 
 REPO = Path(__file__).resolve().parents[1]
 CLI_ITERS = 30
@@ -229,6 +230,34 @@ def test_precision_and_steps_rejected(tmp_path):
         proc = run_cli("paper_quadratic", "--out", str(tmp_path / "x.rrd"), *extra)
         assert proc.returncode == 2, extra
         assert extra[0] in proc.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_t_max_moves_the_escaping_root_and_its_gradient():
+    """``t_max`` is the proposed solver's clamp: for ``[0, -1, 0, 1]`` (the paper's text:
+    ``t+`` escapes, ``dt+/dq = -M`` by the clamp) ``t+`` sits at ``t_max`` and ``dL/dq`` is
+    ``-(t_max - 1/2) M`` for any ``t_max`` (closed form), the bounded roots ``-1, 1`` stay."""
+    s = start([0.0, -1.0, 0.0, 1.0], "qabc")
+    for t_max in (1e3, 1e6, 1e150):
+        run = paper_cubic.run_proposed((s,), iters=0, t_max=t_max)
+        np.testing.assert_allclose(run.extras["roots"][0, 0], [-1.0, 1.0, t_max], rtol=1e-15)
+        assert run.grads[0, 0, 0] == pytest.approx(-(t_max - 0.5) * 1000.0, rel=1e-12)
+    run = paper_quadratic.run_proposed((start([0.0, 1.0, -1.0], "abc"),), iters=0, t_max=1e6)  # a = 0: t = 1 and one escaping root
+    assert sorted(np.abs(run.extras["roots"][0, 0])) == [1.0, 1e6]
+
+
+def test_t_max_option(tmp_path):
+    """``--t-max`` reaches the summary (and the run); values outside [1, 1e150], NaN or text are
+    usage errors naming the flag, with nothing written."""
+    out = tmp_path / "c.rrd"
+    summary = summary_of(run_cli("paper_cubic", "--out", str(out), "--iters", "2", "--t-max", "1e6"))
+    assert summary["t_max"] == 1e6 and out.exists()
+    out.unlink()
+    for bad in ("0.5", "1e151", "nan", "inf", "big"):
+        proc = run_cli("paper_quadratic", "--out", str(tmp_path / "x.rrd"), "--t-max", bad)
+        assert proc.returncode == 2, bad
+        assert "--t-max" in proc.stderr, (bad, proc.stderr[-500:])
+        assert proc.stdout == ""
     assert not list(tmp_path.iterdir())
 
 
