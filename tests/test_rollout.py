@@ -367,29 +367,6 @@ def test_grazing_away_from_the_tangency_mollified_equals_unmollified_and_finite_
     np.testing.assert_allclose(r["mollified"][far], r["fd"][0][far], rtol=1e-5)
 
 
-def test_readme_example_optimises_a_bounce_to_a_target():
-    """The README's example: Adam on the initial velocity of a particle so that, after bouncing
-    off a tilted box, it ends at a target (the contact is present in every iterate)."""
-    b = ModelBuilder()
-    b.add_particle((0.0, 0.0, 0.6), mass=0.1)
-    b.add_static_mesh(*box_mesh((0.3, 0.3, 0.1)), rot=(0.28, 0.0, 0.0, 0.96))
-    b.set_contact(restitution=0.5, friction=0.2)
-    model = b.finalize()
-    target = torch.tensor([0.3, -0.4, 0.2], dtype=torch.float64)
-    v0 = torch.tensor([[0.0, 0.0, -2.0]], dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([v0], lr=0.1)
-    losses = []
-    for _ in range(80):
-        opt.zero_grad()
-        res = rollout(model, steps=30, dt=DT, substeps=4, particle_qd=v0)
-        loss = ((res.particle_q[-1, 0] - target) ** 2).sum()
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-        assert res.stats["contact_substeps"] >= 1
-    assert losses[0] > 0.2 and min(losses) < 1e-4
-
-
 def _box_on_plane(friction, **body):
     b = ModelBuilder()
     b.add_rigid_body(*box_mesh(0.1), density=400.0, **body)
