@@ -239,6 +239,22 @@ def check_ccd_options(ccd_options) -> dict:
     return dict(ccd_options)
 
 
+def contact_separation(model: Model, mesh: CollisionMesh | None = None) -> float:
+    """The separation ``delta`` [m] every contact keeps (:attr:`ImpulseCollisionHandler.separation`;
+    the integrator's particle-plane stage keeps it too while a handler runs): the model's
+    thickness, or when that is 0, :data:`DEFAULT_SEPARATION_RELATIVE` of the diagonal of the
+    collidable vertices' bounding box at the model's start (1e-6 m without vertices)."""
+    if float(model.thickness) > 0.0:
+        return float(model.thickness)
+    mesh = CollisionMesh.from_model(model) if mesh is None else mesh
+    if not mesh.vertex_count:
+        return 1e-6
+    x = mesh.positions(model.particle_q.numpy()[: mesh.particle_count] if mesh.particle_count else np.zeros((0, 3)),
+                       model.body_q.numpy() if model.body_count else np.zeros((0, 7)))
+    diag = float(np.linalg.norm(x.max(0) - x.min(0)))
+    return DEFAULT_SEPARATION_RELATIVE * diag if diag > 0 else 1e-6
+
+
 class ImpulseCollisionHandler:
     """Proximity + CCD + impulse response at the time of impact (see the module docstring).
 
@@ -309,8 +325,14 @@ class ImpulseCollisionHandler:
         self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=model.device)
         self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=model.device)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
-        # the rigid surface vertices and the planes' normals / offsets, for the vertex-plane tests
-        self._shape_ids = np.arange(mesh.shape_offset, mesh.static_offset)
+        # the vertices the vertex-plane tests cover (movable particles and the rigid surface
+        # vertices) and the planes' normals / offsets. The integrator's plane stage has already
+        # stopped the particles at the planes when the handler runs, but a mesh contact's
+        # impulse can push a particle back through (cloth pressed into the ground by a body):
+        # as rows of the same solve the plane holds it
+        particle_inv_mass = m.particle_inv_mass.numpy() if mesh.particle_count else np.zeros(0)
+        self._plane_vertex_ids = np.concatenate([np.flatnonzero(particle_inv_mass > 0),
+                                                 np.arange(mesh.shape_offset, mesh.static_offset)])
         self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
@@ -342,13 +364,7 @@ class ImpulseCollisionHandler:
             self._body_inertia = m.body_inertia.numpy().reshape(-1, 3, 3)
         self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
         self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
-        self.separation = float(m.thickness)
-        if self.separation <= 0.0 and self.n_vertices:
-            x = self._vertices(m.particle_q.numpy()[: self.n_particles] if self.n_particles else np.zeros((0, 3)),
-                               m.body_q.numpy() if self.n_shape else np.zeros((0, 7)))
-            x = x[: self.n_vertices]
-            diag = float(np.linalg.norm(x.max(0) - x.min(0))) if len(x) else 0.0
-            self.separation = DEFAULT_SEPARATION_RELATIVE * diag if diag > 0 else 1e-6
+        self.separation = contact_separation(model, mesh)
         self.last_contacts = np.zeros((0, 3))
         self.last_normals = np.zeros((0, 3))
         self.last_times = np.zeros(0)
@@ -405,11 +421,12 @@ class ImpulseCollisionHandler:
         return host(out)[: len(y)].copy()
 
     def _plane_proximity(self, x0: np.ndarray, delta: float):
-        """Rigid vertices closer than ``delta`` to (or behind) a plane at the start: (kind 2,
-        pair (vertex, plane), vertex indices (vertex, dummy x3), signed distance)."""
-        if not (self.n_shape and len(self.planes)):
+        """Movable vertices (unpinned particles, rigid vertices) closer than ``delta`` to (or
+        behind) a plane at the start: (kind 2, pair (vertex, plane), vertex indices (vertex,
+        dummy x3), signed distance)."""
+        if not (len(self._plane_vertex_ids) and len(self.planes)):
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
-        verts = self._shape_ids
+        verts = self._plane_vertex_ids
         dist = x0[verts] @ self._plane_normals_t - self._plane_offsets
         v, k = np.nonzero(dist < delta)
         return self._plane_rows(verts[v], k) + (dist[v, k],)
@@ -423,7 +440,7 @@ class ImpulseCollisionHandler:
 
     def _ccd_candidates(self, x0: np.ndarray, x1: np.ndarray):
         """Hits of the straight paths ``x0 -> x1`` (with the dummy vertex last): vertex-face,
-        edge-edge (broad + narrow phase at zero thickness) and rigid vertex-plane (the vertex
+        edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a movable vertex
         ends behind the plane, moving inwards).
 
         Returns:
@@ -440,8 +457,8 @@ class ImpulseCollisionHandler:
             idxs.append(self._pair_vertices(kind, pair))
             tois.append(toi)
             sources.append(source)
-        if self.n_shape and len(self.planes):
-            verts = self._shape_ids
+        if len(self._plane_vertex_ids) and len(self.planes):
+            verts = self._plane_vertex_ids
             d0 = x0[verts] @ self._plane_normals_t - self._plane_offsets
             d1 = x1[verts] @ self._plane_normals_t - self._plane_offsets
             v, k = np.nonzero((d1 < 0.0) & (d1 < d0))

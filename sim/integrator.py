@@ -7,7 +7,9 @@ One substep of length ``h = dt / substeps`` maps ``s -> s_next``:
    the centre of mass and the angular-momentum update (``kernels.integrate``). This *predicted*
    State is a fresh one;
 2. if ``model.plane_count > 0``: particle-vs-plane contact with time-of-impact integration
-   (``kernels.integrate.respond_plane_contacts``), into fresh particle arrays;
+   (``kernels.integrate.respond_plane_contacts``), into fresh particle arrays, keeping
+   :meth:`SemiImplicitIntegrator.plane_separation` (the collision handler's separation when it
+   has surfaces, which also holds the particles at the planes in its own solve);
 3. if ``self.collision_handler`` is set, it is called as
    ``collision_handler(state_in, state_out, h)`` where ``state_in`` is the State at the start of
    the substep and ``state_out`` the predicted end of substep (after the plane contacts): its
@@ -95,6 +97,7 @@ class SemiImplicitIntegrator:
         self._stages: dict[str, State] = {}
         self._scratch_forces = None
         self._scratch_plane_index = None
+        self._contact_separation = None  # plane_separation(), once
 
     # ------------------------------------------------------------------ allocation
     def _new_state(self, requires_grad: bool) -> State:
@@ -212,7 +215,7 @@ class SemiImplicitIntegrator:
             else:
                 out = self._stage_state("planes", requires_grad, bodies=pred)
             self.collide_planes(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q, out.particle_qd, h,
-                               requires_grad)
+                               requires_grad, self.plane_separation())
             cur = out
         if handler is not None:
             result = handler(s_in, cur, h)
@@ -253,15 +256,34 @@ class SemiImplicitIntegrator:
             device=self.device,
         )
 
-    def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True) -> None:
+    def plane_separation(self) -> float:
+        """The distance [m] particles keep from the planes: with a collision handler and
+        collidable faces, the separation every contact keeps
+        (:func:`collision.response.contact_separation`: the thickness, or a fraction of the
+        scene's size when that is 0; the handler's vertex-plane rows hold the particles there
+        too), else the model's thickness."""
+        if self.collision_handler is None:
+            return float(self.model.thickness)
+        if self._contact_separation is None:
+            from collision.mesh import CollisionMesh
+            from collision.response import contact_separation
+
+            mesh = CollisionMesh.from_model(self.model)
+            self._contact_separation = (contact_separation(self.model, mesh) if len(mesh.faces)
+                                        else float(self.model.thickness))
+        return self._contact_separation
+
+    def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True,
+                       separation: float | None = None) -> None:
         """Particle-vs-plane time-of-impact integration over one substep ``h``: from start
         positions ``x0``, start velocities ``v_start`` and predicted velocities ``v`` (after the
-        forces) into ``x_out``, ``v_out`` (fresh arrays).
+        forces) into ``x_out``, ``v_out`` (fresh arrays), stopping ``separation`` [m] (default:
+        the model's thickness) in front of the planes.
         Which plane each particle hits is chosen outside the tape; the response is recorded."""
         m, d = self.model, self.device
         idx = self._plane_index(requires_grad)
         hd = wp.float64(h)
-        thickness = wp.float64(m.thickness)
+        thickness = wp.float64(m.thickness if separation is None else separation)
         wp.launch(
             find_plane_contacts,
             dim=m.particle_count,
