@@ -292,6 +292,7 @@ def scene_table(steps: int) -> None:
                     out = handler(s_in, s_pred, h)
                     contacts[0] += len(handler.last_times)
                     return out
+                hook.handler = handler  # the integrator's plane stage keeps the handler's separation
                 integrator.collision_handler = hook
             if handler is not None:
                 # warm-up until contacts (kernel compilation and loading happen at first use),

@@ -97,6 +97,11 @@ END_OF_SUBSTEP = 1e-9
 """A CCD hit this close (relative) to the end of the substep lies on the end of the planned path;
 its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
 
+PLANE_ROUNDING_SLACK = 1e-9
+"""A particle counts as a plane's proximity contact below ``(1 - PLANE_ROUNDING_SLACK) delta``:
+the integrator's plane stage leaves it at ``delta`` exactly, which the distance's rounding may
+put a hair below (rigid vertices, which only the handler holds, keep the plain ``delta``)."""
+
 COVER_MARGIN = 4.0
 """Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
 and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
@@ -331,8 +336,10 @@ class ImpulseCollisionHandler:
         # impulse can push a particle back through (cloth pressed into the ground by a body):
         # as rows of the same solve the plane holds it
         particle_inv_mass = m.particle_inv_mass.numpy() if mesh.particle_count else np.zeros(0)
-        self._plane_vertex_ids = np.concatenate([np.flatnonzero(particle_inv_mass > 0),
-                                                 np.arange(mesh.shape_offset, mesh.static_offset)])
+        movable_particles = np.flatnonzero(particle_inv_mass > 0)
+        self._plane_vertex_ids = np.concatenate([movable_particles, np.arange(mesh.shape_offset, mesh.static_offset)])
+        self._plane_threshold = np.concatenate([np.full((len(movable_particles), 1), 1.0 - PLANE_ROUNDING_SLACK),
+                                                np.ones((self.n_shape, 1))])  # x delta, per vertex
         self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
@@ -428,7 +435,10 @@ class ImpulseCollisionHandler:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
         verts = self._plane_vertex_ids
         dist = x0[verts] @ self._plane_normals_t - self._plane_offsets
-        v, k = np.nonzero(dist < delta)
+        # the integrator's plane stage leaves particles at exactly delta, which this product
+        # may round to a hair below: such a particle is no contact (without the slack a resting
+        # cloth joined the solve on every substep, all of it in one replayed system)
+        v, k = np.nonzero(dist < self._plane_threshold * delta)
         return self._plane_rows(verts[v], k) + (dist[v, k],)
 
     def _plane_rows(self, vertex: np.ndarray, plane: np.ndarray):

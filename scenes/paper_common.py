@@ -48,9 +48,11 @@ DEFAULT_MAX_DERIVATIVE = 1000.0
 T_MAX = 1e150
 """Root clamp ``t_max`` (the paper's value)."""
 T_MAX_RANGE = (1.0, 1e150)
-"""``--t-max`` accepted: at least 1 (the target root 0.5 and the examples' bounded roots lie
-inside), at most the paper's 1e150 (the loss at an escaping root is ``(t_max - 0.5)^2 / 2`` and
-its gradient ``t_max M``: float64 overflows a little beyond)."""
+"""``--t-max`` accepted: at least 1 (the target root 0.5 lies inside), at most the paper's 1e150
+(the loss at an escaping root is ``(t_max - 0.5)^2 / 2`` and its gradient ``t_max M``: float64
+overflows by 1.3e154). The solver clamps *every* root beyond ``t_max``, bounded ones too: the
+cubic start ``[1, 0, -7.1, 6]`` has real roots -3.02, 0.98 and 2.04, so a ``t_max`` below 3.02
+changes its problem."""
 PRECISIONS = ("float64",)
 """Scene attribute: the paper's examples (t_max = 1e150, gradients up to 1e153) need float64."""
 SUPPORTS_STEPS = False
@@ -403,8 +405,9 @@ def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> 
     add_optimisation_arguments(parser, default_iters=default_iters, default_lr=DEFAULT_LR,
                                default_max_derivative=DEFAULT_MAX_DERIVATIVE)
     parser.add_argument("--t-max", type=t_max_argument, default=T_MAX, dest="t_max",
-                        help=f"root clamp t_max of the proposed solver: escaping roots sit at +-t_max "
-                             f"(in [{T_MAX_RANGE[0]:g}, {T_MAX_RANGE[1]:g}]; default the paper's {T_MAX:g})")
+                        help=f"root clamp t_max of the proposed solver: escaping roots sit at +-t_max, and "
+                             f"any root beyond it is clamped to it (in [{T_MAX_RANGE[0]:g}, {T_MAX_RANGE[1]:g}]; "
+                             f"default the paper's {T_MAX:g})")
 
 
 @dataclass(frozen=True)

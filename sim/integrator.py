@@ -97,7 +97,6 @@ class SemiImplicitIntegrator:
         self._stages: dict[str, State] = {}
         self._scratch_forces = None
         self._scratch_plane_index = None
-        self._contact_separation = None  # plane_separation(), once
 
     # ------------------------------------------------------------------ allocation
     def _new_state(self, requires_grad: bool) -> State:
@@ -257,21 +256,17 @@ class SemiImplicitIntegrator:
         )
 
     def plane_separation(self) -> float:
-        """The distance [m] particles keep from the planes: with a collision handler and
-        collidable faces, the separation every contact keeps
-        (:func:`collision.response.contact_separation`: the thickness, or a fraction of the
-        scene's size when that is 0; the handler's vertex-plane rows hold the particles there
-        too), else the model's thickness."""
-        if self.collision_handler is None:
-            return float(self.model.thickness)
-        if self._contact_separation is None:
-            from collision.mesh import CollisionMesh
-            from collision.response import contact_separation
-
-            mesh = CollisionMesh.from_model(self.model)
-            self._contact_separation = (contact_separation(self.model, mesh) if len(mesh.faces)
-                                        else float(self.model.thickness))
-        return self._contact_separation
+        """The distance [m] particles keep from the planes: the separation of the collision
+        handler when it acts on surfaces (an :class:`collision.response.ImpulseCollisionHandler`
+        with a broad phase, also behind wrappers that keep it as ``.handler``), which every
+        contact keeps and its vertex-plane rows hold the particles at; else the model's
+        thickness (no handler, a handler without surfaces, or a hook that never acts)."""
+        inner = self.collision_handler
+        while inner is not None and not hasattr(inner, "broad_phase") and hasattr(inner, "handler"):
+            inner = inner.handler  # e.g. the scenes' ContactGatherer, the rollout's counting wrapper
+        if getattr(inner, "broad_phase", None) is not None and hasattr(inner, "separation"):
+            return float(inner.separation)
+        return float(self.model.thickness)
 
     def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True,
                        separation: float | None = None) -> None:

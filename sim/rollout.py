@@ -441,8 +441,9 @@ def rollout(
             or edge-edge pairs and a window of steps): their roots and closest-point
             coordinates come back in ``event_roots`` / ``event_coords``, differentiable with the
             mollified derivative bounded by ``max_derivative``.
-        collisions: mesh collisions (cloth, rigid, static, rigid-plane) as the scenes handle them;
-            particle-plane contacts are always on.
+        collisions: mesh collisions (cloth, rigid, static, vertex-plane) as the scenes handle
+            them; the integrator's particle-plane stage is always on (with collisions it keeps
+            the handler's separation, without them the model's thickness).
         max_derivative: the robust-division bound ``M`` of the time-of-impact derivative
             (:data:`UNMOLLIFIED_MAX_DERIVATIVE` for the unmollified ``-1/p'(t*)``).
         checkpoint_every: None keeps the whole rollout's tape; K recomputes segments of K steps

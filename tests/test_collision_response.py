@@ -137,6 +137,51 @@ def test_box_pressing_a_cloth_onto_the_ground_keeps_it_above_the_plane(different
 
 
 @pytest.mark.parametrize("differentiable", [False, True], ids=["gauss_seidel", "replayed"])
+@pytest.mark.parametrize(("thickness", "offset"), [(1e-3, 0.013), (0.0, 0.0)])
+def test_cloth_resting_on_a_plane_is_no_handler_contact(differentiable, thickness, offset):
+    """A cloth lying still on a plane at the separation (with a static box far away, so the
+    handler runs): the integrator's plane stage holds it, and the handler adds no vertex-plane
+    row on any substep. Without the rounding slack of its plane test (the distance recomputed a
+    hair below the separation) it acted on 105 of 120 substeps and put the whole resting cloth
+    into one replayed system (measured)."""
+    def cloth_at(z):
+        b = ModelBuilder()
+        b.add_cloth_grid((-0.2, -0.2, z), None, 6, 6, 0.07, 0.07, density=0.2, stretch_stiffness=20,
+                         shear_stiffness=10, bend_stiffness=1, damping=0.01)
+        b.add_static_mesh(*box_mesh((0.1, 0.1, 0.1)), pos=(3.0, 0.0, 0.5))
+        b.add_ground_plane(offset=offset)
+        b.set_contact(restitution=0.0, friction=0.3, thickness=thickness)
+        return b.finalize()
+
+    def separation_of(model):  # the thickness, or 1e-4 of the diagonal of the collidable vertices' box
+        if thickness > 0.0:
+            return thickness
+        x = np.concatenate([model.particle_q.numpy(), box_mesh((0.1, 0.1, 0.1))[0] + [3.0, 0.0, 0.5]])
+        return 1e-4 * np.linalg.norm(x.max(0) - x.min(0))
+
+    # start within 1e-8 of the separation (the cloth's height changes the box's diagonal a hair)
+    model = cloth_at(offset + separation_of(cloth_at(offset)))
+    separation = separation_of(model)
+    integ = SemiImplicitIntegrator(model)
+    handler = ImpulseCollisionHandler(model, differentiable=differentiable)
+    acted = []
+
+    def hook(s_in, s_pred, h):
+        out = handler(s_in, s_pred, h)
+        acted.append(out is not None)
+        return out
+
+    hook.handler = handler  # the plane stage keeps the handler's separation
+    integ.collision_handler = hook
+    s0, s1 = model.state(), model.state()
+    for _ in range(15):
+        integ.step(s0, s1, 1 / 60, substeps=8)
+        s0, s1 = s1, s0
+    assert len(acted) == 120 and not any(acted)
+    np.testing.assert_allclose(s0.particle_q.numpy()[:, 2] - offset, separation, rtol=1e-9)
+
+
+@pytest.mark.parametrize("differentiable", [False, True], ids=["gauss_seidel", "replayed"])
 @pytest.mark.parametrize("scene", ["cloth_on_box", "boxes_on_plane"])
 def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differentiable):
     """After warm-up, explicit steps with the collision handler (proximity, CCD rounds,
