@@ -380,18 +380,6 @@ def views_for_start(
     }
 
 
-def t_max_argument(text: str) -> float:
-    """``argparse`` type of ``--t-max``: a float in :data:`T_MAX_RANGE`."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    low, high = T_MAX_RANGE
-    if not low <= value <= high:  # also refuses NaN
-        raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {text!r}")
-    return value
-
-
 def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> None:
     """A paper scene's options (``--iters``, ``--lr``, ``--max-derivative``, ``--t-max``), paper
     defaults.
@@ -400,11 +388,11 @@ def add_scene_arguments(parser: argparse.ArgumentParser, default_iters: int) -> 
         parser: Parser to extend.
         default_iters: The scene's default number of Adam steps.
     """
-    from scenes.registry import add_optimisation_arguments
+    from scenes.registry import add_optimisation_arguments, float_in
 
     add_optimisation_arguments(parser, default_iters=default_iters, default_lr=DEFAULT_LR,
                                default_max_derivative=DEFAULT_MAX_DERIVATIVE)
-    parser.add_argument("--t-max", type=t_max_argument, default=T_MAX, dest="t_max",
+    parser.add_argument("--t-max", type=float_in(*T_MAX_RANGE), default=T_MAX, dest="t_max",
                         help=f"root clamp t_max of the proposed solver: escaping roots sit at +-t_max, and "
                              f"any root beyond it is clamped to it (in [{T_MAX_RANGE[0]:g}, {T_MAX_RANGE[1]:g}]; "
                              f"default the paper's {T_MAX:g})")

@@ -87,6 +87,21 @@ non_negative_int = int_at_least(0, "a non-negative integer")
 """``argparse`` type: an integer >= 0."""
 
 
+def float_in(low: float, high: float):
+    """``argparse`` type factory: a float in ``[low, high]`` (NaN refused)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {text!r}")
+        return value
+
+    return parse
+
+
 def positive_float(text: str) -> float:
     """``argparse`` type: a finite float > 0."""
     try:

@@ -255,15 +255,22 @@ class SemiImplicitIntegrator:
             device=self.device,
         )
 
+    def impulse_handler(self):
+        """The collision handler itself: ``collision_handler``, or what wrappers that keep it as
+        ``.handler`` (the scenes' ContactGatherer, the rollout's counting wrapper, benchmark
+        hooks) hold; None without a handler."""
+        inner = self.collision_handler
+        while inner is not None and not hasattr(inner, "broad_phase") and hasattr(inner, "handler"):
+            inner = inner.handler
+        return inner
+
     def plane_separation(self) -> float:
         """The distance [m] particles keep from the planes: the separation of the collision
         handler when it acts on surfaces (an :class:`collision.response.ImpulseCollisionHandler`
         with a broad phase, also behind wrappers that keep it as ``.handler``), which every
         contact keeps and its vertex-plane rows hold the particles at; else the model's
         thickness (no handler, a handler without surfaces, or a hook that never acts)."""
-        inner = self.collision_handler
-        while inner is not None and not hasattr(inner, "broad_phase") and hasattr(inner, "handler"):
-            inner = inner.handler  # e.g. the scenes' ContactGatherer, the rollout's counting wrapper
+        inner = self.impulse_handler()
         if getattr(inner, "broad_phase", None) is not None and hasattr(inner, "separation"):
             return float(inner.separation)
         return float(self.model.thickness)
