@@ -566,6 +566,12 @@ class ImpulseCollisionHandler:
             self._particle_inv_mass_w, self._body_inv_mass_w,
             self._staging.empty("inv_ib", len(inv_inertia_w), wp.mat33d),
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
+            # scratch: the contacts' constants over the sweeps
+            self._staging.empty("contact_mass", len(cs), wp.float64),
+            self._staging.empty("contact_particles", len(cs), wp.vec4i),
+            self._staging.empty("contact_bodies", len(cs), wp.vec2i),
+            self._staging.empty("contact_body_weight", len(cs), wp.vec2d),
+            self._staging.empty("contact_lever", 2 * len(cs), wp.vec3d),
             vp_w, lin_w, ang_w, jn, jt, sweeps,
         ])
         P, B, C = len(vp), len(bv), len(cs)

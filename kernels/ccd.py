@@ -105,26 +105,54 @@ def relative_motion_bound(kind: int, m: mat83d) -> wp.float64:
     """Largest displacement over the step of a point of one primitive relative to a point of the
     other (the closest points are convex combinations of the vertices): bounds how fast their
     distance can change per unit of t."""
-    v = wp.float64(0.0)
-    n_first = 1
+    # written out, not as loops over the pairs: a loop with a kind-dependent bound indexes the
+    # matrix at run time, which made this the narrow phase's most expensive step (4x slower)
+    d0 = row(m, 4) - row(m, 0)
+    d1 = row(m, 5) - row(m, 1)
+    d2 = row(m, 6) - row(m, 2)
+    d3 = row(m, 7) - row(m, 3)
     if kind == EDGE_EDGE:
-        n_first = 2
-    for i in range(n_first):
-        di = row(m, i + 4) - row(m, i)
-        for j in range(n_first, 4):
-            dj = row(m, j + 4) - row(m, j)
-            v = wp.max(v, wp.length(dj - di))
-    return v
+        return wp.max(wp.max(wp.length(d2 - d0), wp.length(d3 - d0)), wp.max(wp.length(d2 - d1), wp.length(d3 - d1)))
+    return wp.max(wp.length(d1 - d0), wp.max(wp.length(d2 - d0), wp.length(d3 - d0)))
 
 
 @wp.func
 def relative_extent(m: mat83d) -> wp.float64:
     """Largest coordinate of the points relative to point 0, at the start or the end."""
-    s = wp.float64(0.0)
-    for k in range(1, 4):
-        s = wp.max(s, max_abs_vec3(row(m, k) - row(m, 0)))
-        s = wp.max(s, max_abs_vec3(row(m, k + 4) - row(m, 4)))
-    return s
+    a = row(m, 0)
+    b = row(m, 4)
+    s = wp.max(max_abs_vec3(row(m, 1) - a), wp.max(max_abs_vec3(row(m, 2) - a), max_abs_vec3(row(m, 3) - a)))
+    return wp.max(s, wp.max(max_abs_vec3(row(m, 5) - b), wp.max(max_abs_vec3(row(m, 6) - b), max_abs_vec3(row(m, 7) - b))))
+
+
+@wp.func
+def farther_than(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d, distance: wp.float64) -> bool:
+    """A cheap sufficient test that two primitives (in a query's order, rows 0-3) are more than
+    ``distance`` apart: the distance of the vertex from the face's plane, or of the edges'
+    supporting lines from each other, is a lower bound of theirs.
+
+    It only answers for a face, or a pair of edges, that is at least about 6 degrees from
+    degenerate (parallel edges, a needle face), where the bound's rounding stays below
+    ``500 u`` times the points' extent; otherwise, and whenever the bound is not above
+    ``distance``, it returns False and the caller computes the exact distance. A caller that
+    must decide exactly as the exact distance would adds both roundings to ``distance``."""
+    u = wp.vec3d()
+    v = wp.vec3d()
+    w = wp.vec3d()
+    if kind == VERTEX_FACE:
+        u = y2 - y1
+        v = y3 - y1
+        w = y0 - y1
+    else:
+        u = y1 - y0
+        v = y3 - y2
+        w = y0 - y2
+    n = wp.cross(u, v)
+    nn = wp.dot(n, n)
+    if nn >= wp.float64(0.01) * wp.dot(u, u) * wp.dot(v, v):
+        s = wp.dot(w, n)
+        return s * s > distance * distance * nn
+    return False
 
 
 @wp.func
@@ -213,6 +241,12 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
             return wp.vec3d(one, t_hit, wp.float64(5.0))
         return wp.vec3d(zero, inf, wp.float64(-1.0))
 
+    # most candidates of a broad phase are farther apart than they move: a plane / line distance
+    # rules them out before the exact distance; the threshold adds both distances' rounding (the
+    # bound's, below 2 tol_distance, and the exact one's, below tol_distance) with margin, so it
+    # rejects only pairs that the exact test below rejects too
+    if farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3), wp.float64(5.0) * tol_distance + speed):
+        return wp.vec3d(zero, inf, wp.float64(-1.0))
     start_distance = distance_at(kind, m, zero)
     if start_distance <= tol_distance:
         return wp.vec3d(one, zero, zero)

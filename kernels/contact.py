@@ -9,8 +9,8 @@ the distance.
 
 import warp as wp
 
-from kernels.ccd import pair_vertex_indices
-from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, unit_scaled_cubic
+from kernels.ccd import farther_than, pair_vertex_indices
+from kernels.ccd_common import CCD_T_MAX, UNIT_ROUNDOFF, coplanarity_cubic, max_abs_vec3, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
 from kernels.roots import cubic_roots
@@ -36,6 +36,13 @@ def pair_proximity_kernel(
     (:func:`pair_weights`): the proximity test without a per-pair array leaving the device."""
     i = wp.tid()
     q = pair_vertex_indices(kind, pairs[i], faces, edges)
+    y0 = x[q[0]]
+    # the cheap plane / line bound first (most candidates are farther apart); the threshold adds
+    # the bound's and the exact distance's rounding (each below 256 u extent), so it rejects only
+    # pairs that the exact test rejects too
+    extent = wp.max(max_abs_vec3(x[q[1]] - y0), wp.max(max_abs_vec3(x[q[2]] - y0), max_abs_vec3(x[q[3]] - y0)))
+    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], max_distance + wp.float64(1024.0) * UNIT_ROUNDOFF * extent):
+        return
     off = wp.vec3d()
     if kind == 0:
         off = point_triangle_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
@@ -59,6 +66,37 @@ def _side_begin_end(edge_edge: int, side: int) -> wp.vec2i:
     return wp.vec2i(split, 4)
 
 
+@wp.func
+def _with_slot(v: wp.vec4i, slot: int, value: int) -> wp.vec4i:
+    """``v`` with component ``slot`` set to ``value`` (a new vector: no in-place write)."""
+    out = v
+    if slot == 0:
+        out = wp.vec4i(value, v[1], v[2], v[3])
+    elif slot == 1:
+        out = wp.vec4i(v[0], value, v[2], v[3])
+    elif slot == 2:
+        out = wp.vec4i(v[0], v[1], value, v[3])
+    else:
+        out = wp.vec4i(v[0], v[1], v[2], value)
+    return out
+
+
+@wp.func
+def _apply_body_impulse(
+    body: int,
+    weight_sum: wp.float64,
+    rho: wp.vec3d,
+    impulse: wp.vec3d,
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    body_linear: wp.array(dtype=wp.vec3d),
+    body_angular: wp.array(dtype=wp.vec3d),
+):
+    """The impulse of one side's rigid vertices (summed weight, weighted lever arm) on their body."""
+    body_linear[body] = body_linear[body] + (weight_sum * body_inv_mass[body]) * impulse
+    body_angular[body] = body_angular[body] + body_inv_inertia[body] * wp.cross(rho, impulse)
+
+
 @wp.kernel
 def solve_contacts_kernel(
     count: int,
@@ -77,6 +115,11 @@ def solve_contacts_kernel(
     friction: wp.float64,
     max_sweeps: int,
     tolerance: wp.float64,
+    contact_mass: wp.array(dtype=wp.float64),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_bodies: wp.array(dtype=wp.vec2i),
+    contact_body_weight: wp.array(dtype=wp.vec2d),
+    contact_lever: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3d),
     body_linear: wp.array(dtype=wp.vec3d),
     body_angular: wp.array(dtype=wp.vec3d),
@@ -95,42 +138,80 @@ def solve_contacts_kernel(
     accumulated normal impulse stays >= 0 and the friction impulse within ``friction`` times it.
     Velocities and impulses are updated in place; the sweeps stop once no contact's normal
     velocity is below its target by more than ``tolerance``.
+
+    ``contact_mass``, ``contact_particles``, ``contact_bodies``, ``contact_body_weight`` (at
+    least ``count`` rows) and ``contact_lever`` (``2 count``) are scratch: each contact's
+    constants over the sweeps (effective inverse mass along its normal, the particle of each
+    slot or -1, each side's body or -1 with its summed weight and weighted lever arm), computed
+    once before the sweeps, so that a sweep reads no vertex type, owner, mass or inertia.
     """
     zero = wp.float64(0.0)
+    for c in range(count):
+        q = pairs[c]
+        w = weights[c]
+        n = normals[c]
+        ee = edge_edge[c]
+        k_eff = zero
+        slot_particle = wp.vec4i(-1, -1, -1, -1)
+        side_body = wp.vec2i(-1, -1)
+        side_weight = wp.vec2d(zero, zero)
+        # particles: one by one; rigid vertices: per side (one body per side)
+        for side in range(2):
+            span = _side_begin_end(ee, side)
+            body = int(-1)
+            weight_sum = zero
+            rho = wp.vec3d(zero, zero, zero)
+            for s in range(span[0], span[1]):
+                v = q[s]
+                kind = vertex_type[v]
+                o = vertex_owner[v]
+                if kind == 0:
+                    k_eff = k_eff + w[s] * w[s] * particle_inv_mass[o]
+                    slot_particle = _with_slot(slot_particle, s, o)
+                elif kind == 1:
+                    body = o
+                    weight_sum = weight_sum + w[s]
+                    rho = rho + w[s] * lever_arm[v - shape_offset]
+            if body >= 0:
+                rn = wp.cross(rho, n)
+                k_eff = k_eff + weight_sum * weight_sum * body_inv_mass[body] + wp.dot(rn, body_inv_inertia[body] * rn)
+            if side == 0:
+                side_body = wp.vec2i(body, side_body[1])
+                side_weight = wp.vec2d(weight_sum, side_weight[1])
+            else:
+                side_body = wp.vec2i(side_body[0], body)
+                side_weight = wp.vec2d(side_weight[0], weight_sum)
+            contact_lever[c + c + side] = rho
+        contact_mass[c] = k_eff
+        contact_particles[c] = slot_particle
+        contact_bodies[c] = side_body
+        contact_body_weight[c] = side_weight
     sweep = int(0)
     while sweep < max_sweeps:
         sweep = sweep + 1
         worst = zero
         for c in range(count):
-            q = pairs[c]
-            w = weights[c]
-            n = normals[c]
-            ee = edge_edge[c]
-            vrel = wp.vec3d(zero, zero, zero)
-            k_eff = zero
-            # particles: one by one; rigid vertices: per side (one body per side)
-            for side in range(2):
-                span = _side_begin_end(ee, side)
-                body = int(-1)
-                weight_sum = zero
-                rho = wp.vec3d(zero, zero, zero)
-                for s in range(span[0], span[1]):
-                    v = q[s]
-                    kind = vertex_type[v]
-                    o = vertex_owner[v]
-                    if kind == 0:
-                        vrel = vrel + w[s] * particle_qd[o]
-                        k_eff = k_eff + w[s] * w[s] * particle_inv_mass[o]
-                    elif kind == 1:
-                        body = o
-                        weight_sum = weight_sum + w[s]
-                        rho = rho + w[s] * lever_arm[v - shape_offset]
-                if body >= 0:
-                    vrel = vrel + weight_sum * body_linear[body] + wp.cross(body_angular[body], rho)
-                    rn = wp.cross(rho, n)
-                    k_eff = k_eff + weight_sum * weight_sum * body_inv_mass[body] + wp.dot(rn, body_inv_inertia[body] * rn)
+            k_eff = contact_mass[c]
             if k_eff <= zero:
                 continue
+            w = weights[c]
+            n = normals[c]
+            p = contact_particles[c]
+            bodies = contact_bodies[c]
+            body_weight = contact_body_weight[c]
+            split = 1
+            if edge_edge[c] != 0:
+                split = 2
+            # the relative velocity in the order side A's particles, side A's body, side B's
+            # particles, side B's body (the slots, unrolled)
+            vrel = wp.vec3d(zero, zero, zero)
+            for s in range(4):
+                if s == split and bodies[0] >= 0:
+                    vrel = vrel + body_weight[0] * body_linear[bodies[0]] + wp.cross(body_angular[bodies[0]], contact_lever[c + c])
+                if p[s] >= 0:
+                    vrel = vrel + w[s] * particle_qd[p[s]]
+            if bodies[1] >= 0:
+                vrel = vrel + body_weight[1] * body_linear[bodies[1]] + wp.cross(body_angular[bodies[1]], contact_lever[c + c + 1])
             vn = wp.dot(vrel, n)
             worst = wp.max(worst, targets[c] - vn)
             jn_old = normal_impulse[c]
@@ -145,24 +226,15 @@ def solve_contacts_kernel(
             impulse = (jn_new - jn_old) * n + (jt_new - jt_old)
             normal_impulse[c] = jn_new
             friction_impulse[c] = jt_new
-            for side in range(2):
-                span = _side_begin_end(ee, side)
-                body = int(-1)
-                weight_sum = zero
-                rho = wp.vec3d(zero, zero, zero)
-                for s in range(span[0], span[1]):
-                    v = q[s]
-                    kind = vertex_type[v]
-                    o = vertex_owner[v]
-                    if kind == 0:
-                        particle_qd[o] = particle_qd[o] + (w[s] * particle_inv_mass[o]) * impulse
-                    elif kind == 1:
-                        body = o
-                        weight_sum = weight_sum + w[s]
-                        rho = rho + w[s] * lever_arm[v - shape_offset]
-                if body >= 0:
-                    body_linear[body] = body_linear[body] + (weight_sum * body_inv_mass[body]) * impulse
-                    body_angular[body] = body_angular[body] + body_inv_inertia[body] * wp.cross(rho, impulse)
+            for s in range(4):
+                if s == split and bodies[0] >= 0:
+                    _apply_body_impulse(bodies[0], body_weight[0], contact_lever[c + c], impulse,
+                                        body_inv_mass, body_inv_inertia, body_linear, body_angular)
+                if p[s] >= 0:
+                    particle_qd[p[s]] = particle_qd[p[s]] + (w[s] * particle_inv_mass[p[s]]) * impulse
+            if bodies[1] >= 0:
+                _apply_body_impulse(bodies[1], body_weight[1], contact_lever[c + c + 1], impulse,
+                                    body_inv_mass, body_inv_inertia, body_linear, body_angular)
         if worst <= tolerance:
             break
     sweeps_done[0] = sweep
