@@ -66,7 +66,7 @@ from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import pair_weights_kernel, solve_contacts_kernel
 from sim.model import Model, State
-from sim.rotation import cross, quat_to_matrix, quat_turn
+from sim.rotation import cross, quat_to_matrix, quat_turn, row_norms
 
 SEPARATION_RATE = 0.1
 """Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
@@ -188,7 +188,7 @@ class _Contacts:
         keep_target = np.zeros(before, dtype=np.int64)
         timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
         keys = self._keys(kind, pair)
-        if len(np.unique(keys)) != len(keys):
+        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
             raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         row = self._rows(keys)
         old = np.flatnonzero(row >= 0)  # arguments whose pair is in the set already
@@ -668,7 +668,7 @@ class ImpulseCollisionHandler:
         x0 = self._vertices(x0p, bq0, r0 if B else None)
         x1_pred = self._vertices(x1p_pred, bq1_pred)
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
-        zones = _ImpactZones(P, B, self.particle_inv_mass)
+        zones = None  # the fail-safe's impact zones, made when it first acts (rare)
         delta = self.separation
         self._sep_speed = delta / h
         e = self.model.restitution
@@ -677,15 +677,16 @@ class ImpulseCollisionHandler:
         def plan():
             """End positions (particles, body poses, all vertices) of the current velocities and
             contact times, and the contact times per particle / body."""
-            if not len(cs) and not zones.particles.any() and not zones.bodies.any():
+            if not len(cs) and zones is None:
                 return x1p_pred, bq1_pred, inf_p, inf_b, x1_pred  # nothing changed the prediction
             t_p, t_b = self._owner_times(cs, P, B)
             x1p = x1p_pred.copy()
             hit = np.isfinite(t_p)
             ts = t_p[hit][:, None]
             x1p[hit] = x0p[hit] + ts * vp_minus[hit] + (h - ts) * vp[hit]
-            zp, zb = zones.particles, zones.bodies
-            x1p[zp] = x0p[zp] + h * vp[zp]
+            if zones is not None:
+                zp, zb = zones.particles, zones.bodies
+                x1p[zp] = x0p[zp] + h * vp[zp]
             bq1 = bq1_pred.copy()
             hit_b = np.isfinite(t_b)
             if hit_b.any():
@@ -693,11 +694,12 @@ class ImpulseCollisionHandler:
                 bq1[hit_b, :3] = bq0[hit_b, :3] + ts[:, None] * bv_minus[hit_b, 3:6] + (h - ts)[:, None] * bv[hit_b, 3:6]
                 q_mid = quat_turn(bq0[hit_b, 3:7], bv_minus[hit_b, :3], ts)
                 bq1[hit_b, 3:7] = quat_turn(q_mid, bv[hit_b, :3], h - ts)
-            if zb.any():
-                bq1[zb, :3] = bq0[zb, :3] + h * bv[zb, 3:6]
-                bq1[zb, 3:7] = quat_turn(bq0[zb, 3:7], bv[zb, :3], np.full(int(zb.sum()), h))
-            t_p[zp] = 0.0
-            t_b[zb] = 0.0
+            if zones is not None:
+                if zb.any():
+                    bq1[zb, :3] = bq0[zb, :3] + h * bv[zb, 3:6]
+                    bq1[zb, 3:7] = quat_turn(bq0[zb, 3:7], bv[zb, :3], np.full(int(zb.sum()), h))
+                t_p[zp] = 0.0
+                t_b[zb] = 0.0
             return x1p, bq1, t_p, t_b, self._vertices(x1p, bq1)
 
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
@@ -707,7 +709,7 @@ class ImpulseCollisionHandler:
         rows = []
         kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
         if len(kind):
-            d = np.linalg.norm(off, axis=1)
+            d = row_norms(off)
             near = d < delta
             if near.any():
                 kind, pair, off, d, w = kind[near], pair[near], off[near], d[near], w[near]
@@ -728,9 +730,9 @@ class ImpulseCollisionHandler:
                         cross(y[:, 2] - y[:, 1], y[:, 3] - y[:, 1]),
                     )
                     v = vrel[touching]
-                    speed = np.linalg.norm(v, axis=1, keepdims=True)
+                    speed = row_norms(v, keepdims=True)
                     fallback = np.where(speed > 0, -v / np.where(speed > 0, speed, 1.0), [0.0, 0.0, 1.0])
-                    size = np.linalg.norm(geo, axis=1, keepdims=True)
+                    size = row_norms(geo, keepdims=True)
                     scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))[:, None]
                     ok = size > 1e-12 * scale * scale
                     geo = np.where(ok, geo / np.where(ok, size, 1.0), fallback)
@@ -741,7 +743,8 @@ class ImpulseCollisionHandler:
                 rows.append((kind, pair, idx, w, n, target))
         kind, pair, idx, d = self._plane_proximity(x0, delta)
         if len(kind):
-            w = np.tile([1.0, 0.0, 0.0, 0.0], (len(kind), 1))
+            w = np.zeros((len(kind), 4))
+            w[:, 0] = 1.0  # the vertex alone on side A
             n = self.planes[pair[:, 1], :3]
             vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
             vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
@@ -776,6 +779,8 @@ class ImpulseCollisionHandler:
                 # joined by a still-approaching contact moves as one rigid body (momentum kept;
                 # at rest when the zone holds a static or pinned vertex) over the whole substep
                 failsafe = True
+                if zones is None:
+                    zones = _ImpactZones(P, B, self.particle_inv_mass)
                 if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
                     break  # only contacts inside rigidly moving zones remain (rounding)
                 zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
@@ -955,7 +960,7 @@ class ImpulseCollisionHandler:
                                      state_pred.body_q.numpy() if B else np.zeros((0, 7)))
             self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta)
             kind, pair, off, _ = self._narrow.near(x0[:nv], delta * (1.0 + 1e-9))  # slack: exact test below
-        near = np.linalg.norm(off, axis=1) < delta
+        near = row_norms(off) < delta
         kinds.append(kind[near])
         pairs.append(pair[near])
         idxs.append(self._pair_vertices(kind[near], pair[near]))
@@ -1056,11 +1061,11 @@ class ImpulseCollisionHandler:
         n[vf] = cross(y[vf, 2] - y[vf, 1], y[vf, 3] - y[vf, 1])
         n[edge_edge] = cross(y[edge_edge, 1] - y[edge_edge, 0], y[edge_edge, 3] - y[edge_edge, 2])
         rel = np.einsum("ck,ckd->cd", w, x0[idx])
-        norm = np.linalg.norm(n, axis=1)
+        norm = row_norms(n)
         scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))
         bad = norm <= 1e-12 * scale * scale
         n[bad] = rel[bad]
-        norm = np.linalg.norm(n, axis=1)
+        norm = row_norms(n)
         n = np.divide(n, norm[:, None], out=np.tile([0.0, 0.0, 1.0], (c, 1)), where=norm[:, None] > 0)
         flip = np.einsum("cd,cd->c", n, rel) < 0
         n[flip] *= -1

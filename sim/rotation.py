@@ -7,39 +7,41 @@ from __future__ import annotations
 import numpy as np
 
 
+# quat_to_matrix: entry (i, j) is DIAGONAL_ONE[ij] - 2 (p + SIGN q) or 2 (p + SIGN q) for the
+# products p = q[FIRST[0]] q[FIRST[1]] and q = q[SECOND[0]] q[SECOND[1]] (x, y, z, w = 0, 1, 2, 3),
+# in row-major order: the textbook formula's arithmetic, entry by entry
+_ROT_FIRST = (np.array([1, 0, 0, 0, 0, 1, 0, 1, 0]), np.array([1, 1, 2, 1, 0, 2, 2, 2, 0]))
+_ROT_SECOND = (np.array([2, 2, 1, 2, 2, 0, 1, 0, 1]), np.array([2, 3, 3, 3, 2, 3, 3, 3, 1]))
+_ROT_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+_ROT_DIAGONAL = np.array([True, False, False, False, True, False, False, False, True])
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of unit quaternions (..., 4)."""
-    # entries written into one array (not stacked): the collision response calls this several
-    # times per substep on a few bodies, where numpy's per-call overhead is the whole cost
+    # all nine entries in a few whole-array operations (not one per entry): the collision
+    # response calls this several times per substep on a few bodies, where numpy's per-call
+    # overhead is the whole cost. Same arithmetic per entry as 1 - 2 (y y + z z), 2 (x y - z w), ...
     q = np.asarray(q, dtype=np.float64)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - z * w)
-    out[..., 0, 2] = 2 * (x * z + y * w)
-    out[..., 1, 0] = 2 * (x * y + z * w)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - x * w)
-    out[..., 2, 0] = 2 * (x * z - y * w)
-    out[..., 2, 1] = 2 * (y * z + x * w)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
+    first = q[..., _ROT_FIRST[0]] * q[..., _ROT_FIRST[1]]
+    second = q[..., _ROT_SECOND[0]] * q[..., _ROT_SECOND[1]]
+    twice = 2 * (first + _ROT_SIGN * second)
+    return np.where(_ROT_DIAGONAL, 1 - twice, twice).reshape(q.shape[:-1] + (3, 3))
+
+
+# quat_multiply: component k of a b is ((t0 + t1) + t2) + t3 with t_i = SIGN[k, i] a[A[k, i]]
+# b[B[k, i]] (x, y, z, w = 0, 1, 2, 3): the Hamilton product's terms in its usual written order
+_MUL_A = np.array([[3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2]])
+_MUL_B = np.array([[0, 3, 2, 1], [1, 2, 3, 0], [2, 1, 0, 3], [3, 0, 1, 2]])
+_MUL_SIGN = np.array([[1.0, 1.0, 1.0, -1.0], [1.0, -1.0, 1.0, 1.0], [1.0, 1.0, -1.0, 1.0], [1.0, -1.0, -1.0, -1.0]])
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton products a b (..., 4)."""
+    # all sixteen terms in one product (numpy's per-call overhead is the cost on a few bodies);
+    # a sign of -1 makes t0 + (-t) the same bits as t0 - t
     a, b = np.asarray(a), np.asarray(b)
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        -1,
-    )
+    t = a[..., _MUL_A] * b[..., _MUL_B] * _MUL_SIGN
+    return ((t[..., 0] + t[..., 1]) + t[..., 2]) + t[..., 3]
 
 
 def cross(a, b):
@@ -49,6 +51,13 @@ def cross(a, b):
     # by index arrays, so numpy arrays and torch tensors (autograd) both work
     i, j = [1, 2, 0], [2, 0, 1]
     return a[..., i] * b[..., j] - a[..., j] * b[..., i]
+
+
+def row_norms(x: np.ndarray, keepdims: bool = False) -> np.ndarray:
+    """Euclidean norms over the last axis of ``x`` (..., 3): ``np.linalg.norm(x, axis=-1)``'s
+    arithmetic (the square root of the summed squares, the same bits) without its per-call
+    overhead."""
+    return np.sqrt((x * x).sum(-1, keepdims=keepdims))
 
 
 def quat_rotate(q, v):
@@ -63,9 +72,9 @@ def quat_rotate(q, v):
 def quat_turn(q: np.ndarray, omega: np.ndarray, duration: np.ndarray) -> np.ndarray:
     """Quaternions ``q`` (..., 4) turned by world angular velocities ``omega`` [rad/s] (..., 3) for
     ``duration`` [s] (...,): the exact rotation, renormalised."""
-    speed = np.linalg.norm(omega, axis=-1, keepdims=True)
+    speed = row_norms(omega, keepdims=True)
     axis = np.divide(omega, speed, out=np.zeros_like(omega), where=speed > 0)
-    angle = speed[..., 0] * duration
-    dq = np.concatenate([axis * np.sin(angle / 2)[..., None], np.cos(angle / 2)[..., None]], -1)
+    half = (speed[..., 0] * duration / 2)[..., None]
+    dq = np.concatenate([axis * np.sin(half), np.cos(half)], -1)
     out = quat_multiply(dq, q)
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+    return out / row_norms(out, keepdims=True)
