@@ -252,12 +252,42 @@ def main(argv=None):
     size_table(args.sizes, args.size_steps, args.newton_sizes)
 
 
-REFERENCE_REPEATS = 5
-"""Runs of the step without collision handling; the table uses their median rate."""
-
 WARM_UP_STEPS = 40
 """Steps run before a scene is timed: long enough for the first contacts (cloth_drop lands at
 step ~14), so that no kernel is compiled or loaded inside the timed loop."""
+
+
+INTERLEAVE_STEPS = 10
+"""Steps each run of the per-scene table takes in its turn (see :func:`scene_table`)."""
+
+
+class _SceneRun:
+    """One scene stepped with collision handling ``mode`` ("none", "pgs" or "replayed"), from
+    the start, one step per :meth:`step` call, its time summed."""
+
+    def __init__(self, model, args, mode: str) -> None:
+        from collision.response import ImpulseCollisionHandler
+
+        self.args = args
+        self.integrator = SemiImplicitIntegrator(model)
+        self.handler = None if mode == "none" else ImpulseCollisionHandler(model, differentiable=mode == "replayed")
+        self.contacts = 0
+        if self.handler is not None:
+            def hook(s_in, s_pred, h, run=self):
+                out = run.handler(s_in, s_pred, h)
+                run.contacts += len(run.handler.last_times)
+                return out
+            hook.handler = self.handler  # the integrator's plane stage keeps the handler's separation
+            self.integrator.collision_handler = hook
+        self.states = (model.state(), model.state())
+        self.seconds = 0.0
+
+    def step(self) -> None:
+        s0, s1 = self.states
+        t0 = time.perf_counter()
+        self.integrator.step(s0, s1, self.args.dt, self.args.substeps)
+        self.seconds += time.perf_counter() - t0
+        self.states = (s1, s0)
 
 
 def scene_table(steps: int) -> None:
@@ -267,66 +297,47 @@ def scene_table(steps: int) -> None:
     both count), for both forms of the response: Gauss-Seidel impulses (``ImpulseCollisionHandler``)
     and the replayed exact solve (``differentiable=True``, no tape recording). The same model
     without the collision handler is timed as the reference, which shows what the collision
-    handling costs."""
+    handling costs.
+
+    The three runs advance in turns of :data:`INTERLEAVE_STEPS` steps (interleaved), each step
+    timed on its own: a shared machine's speed drifts over seconds (whole runs one after the
+    other varied by up to 2x here), and interleaving makes every run see the same drift, so the
+    ratios hold; a turn of several steps keeps each run's caches warm after its first step."""
     from scenes import cloth_drop, cloth_rigid, rigid_toss
     from scenes.sim_common import build_model, default_args
-    from collision.response import ImpulseCollisionHandler
 
     print(f"Full steps per second with collisions, per scene ({steps} steps of 1/60 s in 8 substeps, "
-          "from the start; one CPU thread):")
+          f"from the start, the three runs interleaved in turns of {INTERLEAVE_STEPS} steps; one CPU thread):")
     head = (f"{'scene':12s} {'response':9s} {'particles':>9s} {'bodies':>6s} {'faces':>6s} | {'steps/s':>8s} "
             f"{'ms/step':>8s} {'contacts/step':>13s} {'fail-safe':>9s} | {'no-collision steps/s':>20s} "
             f"{'collision cost':>14s}")
     print(head)
     print("-" * len(head))
+    modes = ("none", "pgs", "replayed")
     for module in (cloth_drop, rigid_toss, cloth_rigid):
         args = default_args()
         model = build_model(module.build, args)
-        rates = {}
-        for mode in ("none", "pgs", "replayed"):
-            integrator = SemiImplicitIntegrator(model)
-            handler = None if mode == "none" else ImpulseCollisionHandler(model, differentiable=mode == "replayed")
-            contacts = [0]
-            if handler is not None:
-                def hook(s_in, s_pred, h, handler=handler, contacts=contacts):
-                    out = handler(s_in, s_pred, h)
-                    contacts[0] += len(handler.last_times)
-                    return out
-                hook.handler = handler  # the integrator's plane stage keeps the handler's separation
-                integrator.collision_handler = hook
-            if handler is not None:
-                # warm-up until contacts (kernel compilation and loading happen at first use),
-                # with a handler of its own so that the timed one's counters start at zero
-                warm = SemiImplicitIntegrator(model)
-                warm.collision_handler = ImpulseCollisionHandler(model, differentiable=mode == "replayed")
-                s0, s1 = model.state(), model.state()
-                for _ in range(min(steps, WARM_UP_STEPS)):
-                    warm.step(s0, s1, args.dt, args.substeps)
-                    s0, s1 = s1, s0
-            s0, s1 = model.state(), model.state()
-            integrator.step(s0, s1, args.dt, args.substeps)  # warm-up: kernel load
-            s0, s1 = model.state(), model.state()
-            contacts[0] = 0
-            # the reference is short (a fraction of a millisecond per step): the median of
-            # several runs, so that one slow run does not shrink the cost ratio
-            runs = []
-            for _ in range(REFERENCE_REPEATS if handler is None else 1):
-                s0, s1 = model.state(), model.state()
-                t0 = time.perf_counter()
-                for _ in range(steps):
-                    integrator.step(s0, s1, args.dt, args.substeps)
-                    s0, s1 = s1, s0
-                runs.append(steps / (time.perf_counter() - t0))
-            rates[mode] = (float(np.median(runs)), contacts[0] / steps, handler.failsafe_count if handler else 0)
-        ref = rates["none"][0]
+        # warm-up until contacts: kernel compilation and loading happen at first use
+        for mode in modes:
+            warm = _SceneRun(model, args, mode)
+            for _ in range(min(steps, WARM_UP_STEPS)):
+                warm.step()
+        runs = {mode: _SceneRun(model, args, mode) for mode in modes}
+        for start in range(0, steps, INTERLEAVE_STEPS):
+            for mode in modes:
+                for _ in range(min(INTERLEAVE_STEPS, steps - start)):
+                    runs[mode].step()
+        ref = steps / runs["none"].seconds
         faces = int(model.tri_count) + (model.shape_faces.shape[0] if model.shape_faces is not None else 0) \
             + (model.static_faces.shape[0] if model.static_faces is not None else 0)
         for mode in ("pgs", "replayed"):
-            sps, cps, fs = rates[mode]
+            run = runs[mode]
+            sps = steps / run.seconds
             # collision cost: time of the collision handling per step over the force+integration step
             cost = (1.0 / sps - 1.0 / ref) * ref
             print(f"{module.NAME:12s} {mode:9s} {model.particle_count:9d} {model.body_count:6d} {faces:6d} | "
-                  f"{sps:8.1f} {1e3 / sps:8.1f} {cps:13.1f} {fs:9d} | {ref:20.1f} {cost:13.1f}x")
+                  f"{sps:8.1f} {1e3 / sps:8.1f} {run.contacts / steps:13.1f} {run.handler.failsafe_count:9d} | "
+                  f"{ref:20.1f} {cost:13.1f}x")
     print("-" * len(head))
     print("contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
           "substeps that needed rigid impact zones; collision cost: time spent in collision handling "
