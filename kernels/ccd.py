@@ -125,6 +125,21 @@ def relative_extent(m: mat83d) -> wp.float64:
     return wp.max(s, wp.max(max_abs_vec3(row(m, 5) - b), wp.max(max_abs_vec3(row(m, 6) - b), max_abs_vec3(row(m, 7) - b))))
 
 
+# Rounding of :func:`farther_than`'s bound (below about 20 u extent where it answers: measured
+# 10.5 u against exact arithmetic) plus that of the exact distance it stands in for, whose
+# vertex-face form works in absolute coordinates (a few u (|x| + extent)), with margin; a
+# constant, not DISTANCE_ERROR_FACTOR, so that the tolerance_scale knob cannot shrink it.
+FILTER_ROUNDING_FACTOR = wp.constant(wp.float64(1024.0))
+
+
+@wp.func
+def filter_rounding(extent: wp.float64, y0: wp.vec3d) -> wp.float64:
+    """What :func:`farther_than`'s threshold adds to an exact distance test of four points whose
+    coordinates relative to ``y0`` are at most ``extent``: ``FILTER_ROUNDING_FACTOR u (extent +
+    |y0|)`` (largest coordinates)."""
+    return FILTER_ROUNDING_FACTOR * UNIT_ROUNDOFF * (extent + max_abs_vec3(y0))
+
+
 @wp.func
 def farther_than(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d, distance: wp.float64) -> bool:
     """A cheap sufficient test that two primitives (in a query's order, rows 0-3) are more than
@@ -132,10 +147,11 @@ def farther_than(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec
     supporting lines from each other, is a lower bound of theirs.
 
     It only answers for a face, or a pair of edges, that is at least about 6 degrees from
-    degenerate (parallel edges, a needle face), where the bound's rounding stays below
-    ``500 u`` times the points' extent; otherwise, and whenever the bound is not above
+    degenerate (parallel edges, a needle face), where the bound's rounding stays below about
+    ``20 u`` times the points' extent; otherwise, and whenever the bound is not above
     ``distance``, it returns False and the caller computes the exact distance. A caller that
-    must decide exactly as the exact distance would adds both roundings to ``distance``."""
+    must decide exactly as the exact distance would adds both roundings to ``distance``
+    (:func:`filter_rounding`)."""
     u = wp.vec3d()
     v = wp.vec3d()
     w = wp.vec3d()
@@ -242,10 +258,10 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
         return wp.vec3d(zero, inf, wp.float64(-1.0))
 
     # most candidates of a broad phase are farther apart than they move: a plane / line distance
-    # rules them out before the exact distance; the threshold adds both distances' rounding (the
-    # bound's, below 2 tol_distance, and the exact one's, below tol_distance) with margin, so it
-    # rejects only pairs that the exact test below rejects too
-    if farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3), wp.float64(5.0) * tol_distance + speed):
+    # rules them out before the exact distance. Its threshold is the exact test's below plus both
+    # distances' rounding (FILTER_ROUNDING_FACTOR), so it rejects only pairs that test rejects too
+    if farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3),
+                    tol_distance + speed + filter_rounding(extent, row(m, 0))):
         return wp.vec3d(zero, inf, wp.float64(-1.0))
     start_distance = distance_at(kind, m, zero)
     if start_distance <= tol_distance:

@@ -9,8 +9,8 @@ the distance.
 
 import warp as wp
 
-from kernels.ccd import farther_than, pair_vertex_indices
-from kernels.ccd_common import CCD_T_MAX, UNIT_ROUNDOFF, coplanarity_cubic, max_abs_vec3, unit_scaled_cubic
+from kernels.ccd import farther_than, filter_rounding, pair_vertex_indices
+from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, max_abs_vec3, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
 from kernels.roots import cubic_roots
@@ -38,10 +38,10 @@ def pair_proximity_kernel(
     q = pair_vertex_indices(kind, pairs[i], faces, edges)
     y0 = x[q[0]]
     # the cheap plane / line bound first (most candidates are farther apart); the threshold adds
-    # the bound's and the exact distance's rounding (each below 256 u extent), so it rejects only
-    # pairs that the exact test rejects too
+    # the bound's rounding and the exact distance's (kernels.ccd.filter_rounding), so it rejects
+    # only pairs that the exact test rejects too
     extent = wp.max(max_abs_vec3(x[q[1]] - y0), wp.max(max_abs_vec3(x[q[2]] - y0), max_abs_vec3(x[q[3]] - y0)))
-    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], max_distance + wp.float64(1024.0) * UNIT_ROUNDOFF * extent):
+    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], max_distance + filter_rounding(extent, y0)):
         return
     off = wp.vec3d()
     if kind == 0:

@@ -28,19 +28,22 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     return np.where(_ROT_DIAGONAL, 1 - twice, twice).reshape(q.shape[:-1] + (3, 3))
 
 
-# quat_multiply: component k of a b is ((t0 + t1) + t2) + t3 with t_i = SIGN[k, i] a[A[k, i]]
-# b[B[k, i]] (x, y, z, w = 0, 1, 2, 3): the Hamilton product's terms in its usual written order
+# quat_multiply: component k of a b is ((t0 + t1) + t2) + t3 with t_i = a[A[k, i]] b[B[k, i]],
+# negated where NEGATIVE[k, i] (x, y, z, w = 0, 1, 2, 3): the Hamilton product's terms in its
+# usual written order
 _MUL_A = np.array([[3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2]])
 _MUL_B = np.array([[0, 3, 2, 1], [1, 2, 3, 0], [2, 1, 0, 3], [3, 0, 1, 2]])
-_MUL_SIGN = np.array([[1.0, 1.0, 1.0, -1.0], [1.0, -1.0, 1.0, 1.0], [1.0, 1.0, -1.0, 1.0], [1.0, -1.0, -1.0, -1.0]])
+_MUL_NEGATIVE = np.array([[False, False, False, True], [False, True, False, False], [False, False, True, False],
+                          [False, True, True, True]])
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton products a b (..., 4)."""
     # all sixteen terms in one product (numpy's per-call overhead is the cost on a few bodies);
-    # a sign of -1 makes t0 + (-t) the same bits as t0 - t
+    # t0 + (-t) is the same bits as t0 - t, and the negation keeps the inputs' dtype
     a, b = np.asarray(a), np.asarray(b)
-    t = a[..., _MUL_A] * b[..., _MUL_B] * _MUL_SIGN
+    t = a[..., _MUL_A] * b[..., _MUL_B]
+    t = np.where(_MUL_NEGATIVE, -t, t)
     return ((t[..., 0] + t[..., 1]) + t[..., 2]) + t[..., 3]
 
 
