@@ -199,9 +199,7 @@ def solve_contacts_kernel(
             p = contact_particles[c]
             bodies = contact_bodies[c]
             body_weight = contact_body_weight[c]
-            split = 1
-            if edge_edge[c] != 0:
-                split = 2
+            split = _side_begin_end(edge_edge[c], 0)[1]  # side B's first slot
             # the relative velocity in the order side A's particles, side A's body, side B's
             # particles, side B's body (the slots, unrolled)
             vrel = wp.vec3d(zero, zero, zero)

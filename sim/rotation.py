@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 
-# quat_to_matrix: entry (i, j) is DIAGONAL_ONE[ij] - 2 (p + SIGN q) or 2 (p + SIGN q) for the
-# products p = q[FIRST[0]] q[FIRST[1]] and q = q[SECOND[0]] q[SECOND[1]] (x, y, z, w = 0, 1, 2, 3),
-# in row-major order: the textbook formula's arithmetic, entry by entry
+# quat_to_matrix: row-major entry k is 1 - 2 (p + SIGN[k] r) where DIAGONAL[k], else 2 (p + SIGN[k] r),
+# for the products p = q[FIRST[0][k]] q[FIRST[1][k]] and r = q[SECOND[0][k]] q[SECOND[1][k]]
+# (x, y, z, w = 0, 1, 2, 3): the textbook formula's arithmetic, entry by entry
 _ROT_FIRST = (np.array([1, 0, 0, 0, 0, 1, 0, 1, 0]), np.array([1, 1, 2, 1, 0, 2, 2, 2, 0]))
 _ROT_SECOND = (np.array([2, 2, 1, 2, 2, 0, 1, 0, 1]), np.array([2, 3, 3, 3, 2, 3, 3, 3, 1]))
 _ROT_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
