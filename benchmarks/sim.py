@@ -275,7 +275,7 @@ class _SceneRun:
         if self.handler is not None:
             def hook(s_in, s_pred, h, run=self):
                 out = run.handler(s_in, s_pred, h)
-                run.contacts += len(run.handler.last_times)
+                run.contacts += run.handler.last_contact_count
                 return out
             hook.handler = self.handler  # the integrator's plane stage keeps the handler's separation
             self.integrator.collision_handler = hook

@@ -64,9 +64,10 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import pair_weights_kernel, solve_contacts_kernel
+from kernels.contact import (contact_geometry_kernel, pair_weights_kernel, planned_bodies_kernel, planned_particles_kernel,
+                             pose_vertices_kernel, solve_contacts_kernel)
 from sim.model import Model, State
-from sim.rotation import cross, quat_to_matrix, quat_turn, row_norms
+from sim.rotation import cross, quat_to_matrix, row_norms
 
 SEPARATION_RATE = 0.1
 """Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
@@ -219,6 +220,58 @@ class _Contacts:
         return new_index, keep_toi, keep_target
 
 
+class _CallContacts:
+    """The contacts of one handler call, for its ``last_*`` statistics, worked out when first
+    read: the recorder, the implicit integrator and the benchmarks read them, a plain stepping
+    loop does not (working them out on every call cost about 0.1 ms per substep).
+
+    Args:
+        cs: the call's contact set (not changed after the call), or None (no contact).
+        x0, x1: the vertices' positions (V + 1, 3) at the start and the planned end [m]
+            (copied here when a contact received an impulse: they may be reused buffers).
+        h: the substep [s].
+        vertex_type: (V + 1,) the vertex kinds.
+    """
+
+    def __init__(self, cs=None, x0=None, x1=None, h=1.0, vertex_type=None) -> None:
+        self._active = (cs.jn > 0) if cs is not None and len(cs) else np.zeros(0, dtype=bool)
+        if self._active.any():
+            x0, x1 = x0.copy(), x1.copy()
+        self._args = (cs, x0, x1, h, vertex_type)
+        self.count = int(self._active.sum())
+        self._contacts = None
+        self._body_particles = None
+
+    def contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points (C, 3) [m]: side A's closest point at ``t*`` on the straight paths x0 -> x1,
+        normals (C, 3), times of impact (C,) [s]) of the contacts that received an impulse."""
+        if self._contacts is None:
+            cs, x0, x1, h, _ = self._args
+            active = self._active
+            if active.any():
+                ia = cs.idx[active]
+                side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None],
+                                         cs.w[active], 0.0))
+                y = x0[ia] + (cs.toi[active] / h)[:, None, None] * (x1[ia] - x0[ia])
+                self._contacts = (np.einsum("ck,ckd->cd", side_a, y), cs.n[active], cs.toi[active])
+            else:
+                self._contacts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        return self._contacts
+
+    def body_particles(self) -> np.ndarray:
+        """(K,) int64 the particles (sorted, distinct) that share a contact with a rigid body's
+        vertex."""
+        if self._body_particles is None:
+            cs, vertex_type = self._args[0], self._args[4]
+            self._body_particles = np.zeros(0, dtype=np.int64)
+            if cs is not None and len(cs):
+                types = vertex_type[cs.idx]
+                rows = (types == _BODY).any(axis=1)
+                if rows.any():
+                    self._body_particles = np.unique(cs.idx[rows][types[rows] == _PARTICLE])
+        return self._body_particles
+
+
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
 """Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
 
@@ -280,6 +333,8 @@ class ImpulseCollisionHandler:
             contacts that received an impulse.
         last_normals: (C, 3) their unit normals.
         last_times: (C,) their times of impact from the start of the substep [s].
+        last_contact_count: C (cheap: the three above are worked out when first read).
+        last_body_particles: the particles that touched a rigid body's vertex in the last call.
         failsafe_count: substeps (over the handler's life) in which the fail-safe froze something.
         untaped_substeps: substeps (``differentiable=True``) whose response carries no
             derivative; always 0 since the impact zones' motion is taped (kept for
@@ -343,6 +398,16 @@ class ImpulseCollisionHandler:
         self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
+        local = np.zeros((self.n_vertices + 1, 3))  # body-frame / world positions, the dummy at 0
+        local[: self.n_vertices] = mesh.local
+        self._local_w = wp.array(local, dtype=wp.vec3d, device=model.device)
+        planes = self.planes if len(self.planes) else np.zeros((1, 4))
+        self._planes_w = wp.array(planes, dtype=wp.vec4d, device=model.device)
+        # stand-ins for the arrays of a model without particles / bodies (never read)
+        self._no_vec = wp.zeros(1, dtype=wp.vec3d, device=model.device)
+        self._no_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=model.device)
+        self._no_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=model.device)
+        self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
         self._levers_uploaded = None  # the lever arms / inertias _solve last uploaded
         self._out = model.state()
@@ -372,10 +437,7 @@ class ImpulseCollisionHandler:
         self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
         self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
         self.separation = contact_separation(model, mesh)
-        self.last_contacts = np.zeros((0, 3))
-        self.last_normals = np.zeros((0, 3))
-        self.last_times = np.zeros(0)
-        self.last_body_particles = np.zeros(0, dtype=np.int64)
+        self._last = self._last_call = _CallContacts()  # the last call's contacts (restorable / not)
         self.failsafe_count = 0
         self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
         self.untaped_substeps = 0
@@ -394,14 +456,88 @@ class ImpulseCollisionHandler:
     # ------------------------------------------------------------------------------------------
     # geometry
 
-    def _vertices(self, particle_q, body_q, levers=None):
-        """World positions of all collidable vertices for particle and body arrays (numpy), and
-        the dummy vertex at the origin (``levers``: see :meth:`CollisionMesh.positions`)."""
-        x = np.empty((self.n_vertices + 1, 3))
-        x[-1] = 0.0
-        self.mesh.positions(particle_q, body_q if self.n_bodies else np.zeros((self.model.body_count, 7)), levers,
-                            out=x[:-1])
-        return x
+    def _pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None):
+        """World positions (V + 1, 3) [m] of the collidable vertices and the dummy vertex at the
+        origin, and their lever arms (V + 1, 3) [m] from the owning body's centre of mass (0
+        for the others), for the device arrays ``particle_q`` (P,) and ``body_q`` (B,): the
+        replay's pose (:func:`kernels.contact.pose_vertices_kernel`) into the handler's buffers
+        ``name``. On the CPU the results are views of those buffers, overwritten by the next
+        pose into ``name``."""
+        n = self.n_vertices + 1
+        x = self._staging.empty("x_" + name, n, wp.vec3d)
+        lever = self._staging.empty("lever_" + name, n, wp.vec3d)
+        self._launches.launch(("pose", name), pose_vertices_kernel, n, [
+            particle_q if self.n_particles else self._no_vec, body_q if self.n_bodies else self._no_pose,
+            self._vertex_type_w, self._vertex_owner_w, self._local_w, x, lever])
+        return host(x)[:n], host(lever)[:n]
+
+    def _plan(self, state_in: State, state_pred: State, particle_time, body_time, vp, bv, h: float):
+        """End positions of the substep ``h`` [s] for the particles' / bodies' earliest contact
+        times ``particle_time`` (P,), ``body_time`` (B,) [s] (inf: none, the prediction of
+        ``state_pred`` stays) and their velocities after the impulses ``vp`` (P, 3), ``bv`` (B, 6):
+        the replay's time-of-impact integration (:func:`kernels.contact.time_of_impact_position`,
+        ``time_of_impact_pose``), then the vertices' positions (:meth:`_pose`).
+
+        Returns:
+            (particle positions (P, 3), body poses (B, 7), vertex positions (V + 1, 3)): views
+            of the handler's buffers (the next plan overwrites them).
+        """
+        put, empty = self._staging.put, self._staging.empty
+        P, B = self.n_particles, self.n_bodies
+        x1p = bq1 = None
+        if P:
+            x1p = empty("planned_particle_q", P, wp.vec3d)
+            self._launches.launch("plan_particles", planned_particles_kernel, P, [
+                state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, put("planned_vp", vp, wp.vec3d),
+                put("particle_time", particle_time, wp.float64), float(h), x1p])
+        if B:
+            bq1 = empty("planned_body_q", B, wp.transformd)
+            self._launches.launch("plan_bodies", planned_bodies_kernel, B, [
+                state_in.body_q, state_pred.body_q, state_pred.body_qd, put("planned_bv", bv, wp.spatial_vectord),
+                put("body_time", body_time, wp.float64), float(h), bq1])
+        x1 = self._pose("planned", x1p, bq1)[0]
+        return (host(x1p)[:P] if P else np.zeros((0, 3)), host(bq1)[:B] if B else np.zeros((0, 7)), x1)
+
+    def _proximity_rows(self, x0: np.ndarray, delta: float):
+        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3)):
+        pairs of primitives whose exact closest points are nearer than ``delta`` [m], then
+        movable vertices nearer than ``delta`` to a plane (:meth:`_plane_proximity`).
+
+        Returns:
+            (kind (C,), pair (C, 2), vertex indices (C, 4)).
+        """
+        kind, pair, off, _ = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is here
+        near = row_norms(off) < delta
+        kind, pair = kind[near], pair[near]
+        plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(x0, delta)
+        return (np.concatenate([kind, plane_kind]), np.concatenate([pair, plane_pair]),
+                np.concatenate([self._pair_vertices(kind, pair), plane_idx]))
+
+    def _start_geometry(self, kind, pair, idx, pose, state_pred: State, h: float):
+        """Weights (C, 4), unit normals (C, 3) and target normal velocities (C,) [m/s] of the
+        proximity contacts ``kind``, ``pair``, ``idx`` (:meth:`_proximity_rows`) at the start
+        positions: :func:`kernels.contact.contact_geometry_kernel`, the replay's definition
+        (the offset's direction, or for touching pairs the face / edges' normal turned against
+        the relative motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the
+        velocities ``v-`` of ``state_pred``). ``pose``: the name of the start pose's buffers
+        (:meth:`_pose`)."""
+        c = len(kind)
+        put, empty = self._staging.put, self._staging.empty
+        x0 = empty("x_" + pose, self.n_vertices + 1, wp.vec3d)
+        out = (empty("geo_toi", c, wp.float64), empty("geo_w", c, wp.vec4d), empty("geo_n", c, wp.vec3d),
+               empty("geo_target", c, wp.float64))
+        vm_p = state_pred.particle_qd if self.n_particles else self._no_vec
+        vm_b = state_pred.body_qd if self.n_bodies else self._no_twist
+        self._launches.launch("start_geometry", contact_geometry_kernel, c, [
+            x0, x0, empty("lever_" + pose, self.n_vertices + 1, wp.vec3d), self._vertex_type_w,
+            self._vertex_owner_w, put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32),
+            put("geo_source", np.zeros(c, dtype=np.int32), wp.int32),  # 0: at the start (no root)
+            put("geo_detected", np.zeros(c), wp.float64),
+            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), self._planes_w,
+            vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
+            float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
+            float(self.max_derivative), 0, *out])
+        return host(out[1])[:c].copy(), host(out[2])[:c].copy(), host(out[3])[:c].copy()
 
     def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
@@ -583,12 +719,13 @@ class ImpulseCollisionHandler:
         cs.jn, cs.jt = host(jn)[:C].copy(), host(jt)[:C].copy()
         self.last_sweeps = int(host(sweeps)[0])
 
-    def _body_inertia_w(self, body_q):
-        """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
+    def _body_inertia_w(self, body_q, body_frame=None):
+        """World tensors R I R^T of the bodies at poses ``body_q`` (B, 7) for their body-frame
+        tensors ``body_frame`` (B, 3, 3) (default: the inertias)."""
         if not self.n_bodies:
             return np.zeros((0, 3, 3))
         rot = quat_to_matrix(body_q[:, 3:7])
-        return rot @ self._body_inertia @ np.swapaxes(rot, 1, 2)
+        return rot @ (self._body_inertia if body_frame is None else body_frame) @ np.swapaxes(rot, 1, 2)
 
     def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
         """Earliest time of impact [s] per particle / body among the contacts of the set (inf
@@ -610,12 +747,39 @@ class ImpulseCollisionHandler:
     # ------------------------------------------------------------------------------------------
 
     _COUNTERS = ("failsafe_count", "ccd_events", "untaped_substeps", "active_set_repairs", "unsettled_active_sets")
-    _LAST = ("last_contacts", "last_normals", "last_times")
+
+    @property
+    def last_contacts(self) -> np.ndarray:
+        """(C, 3) contact points [m] of the last call (see the class docstring)."""
+        return self._last.contacts()[0]
+
+    @property
+    def last_normals(self) -> np.ndarray:
+        """(C, 3) unit normals of the last call's contacts."""
+        return self._last.contacts()[1]
+
+    @property
+    def last_times(self) -> np.ndarray:
+        """(C,) times of impact [s] of the last call's contacts, from the start of its substep."""
+        return self._last.contacts()[2]
+
+    @property
+    def last_contact_count(self) -> int:
+        """How many contacts received an impulse in the last call (``len(last_times)``, without
+        working out the contact points)."""
+        return self._last.count
+
+    @property
+    def last_body_particles(self) -> np.ndarray:
+        """(K,) the particles that shared a contact with a rigid body's vertex in the last call
+        (the implicit integrator must not prescribe their motion in a re-solve: the body would not
+        feel the reaction). Not put back by :meth:`restore_stats`."""
+        return self._last_call.body_particles()
 
     def save_stats(self) -> dict:
         """The statistics (life counters, last call's contacts), for :meth:`restore_stats` after
         calls whose result an integrator discards (a trial pass, a rejected substep)."""
-        stats = {c: getattr(self, c) for c in self._COUNTERS + self._LAST}
+        stats = {c: getattr(self, c) for c in self._COUNTERS + ("_last",)}
         stats["largest_system"] = self._replay.largest_system if self._replay is not None else 0
         return stats
 
@@ -628,24 +792,12 @@ class ImpulseCollisionHandler:
             else:
                 setattr(self, c, v)
 
-    def _note_body_contacts(self, cs) -> None:
-        """Records the particles that share a contact with a rigid body's vertex in this call
-        (:attr:`last_body_particles`)."""
-        if not len(cs):
-            return
-        types = self.vertex_type[cs.idx]
-        rows = (types == _BODY).any(axis=1)
-        if rows.any():
-            idx = cs.idx[rows][types[rows] == _PARTICLE]
-            self.last_body_particles = np.unique(idx)
+    def _note_contacts(self, record: _CallContacts) -> None:
+        """Makes ``record`` the last call's contacts (:attr:`last_contacts`, ...)."""
+        self._last = self._last_call = record
 
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
-        self.last_contacts = np.zeros((0, 3))
-        self.last_normals = np.zeros((0, 3))
-        self.last_times = np.zeros(0)
-        # particles in contact with a rigid body in this call: the implicit integrator must not
-        # prescribe their motion in a re-solve (the body would not feel the reaction)
-        self.last_body_particles = np.zeros(0, dtype=np.int64)
+        self._note_contacts(_CallContacts())
         if self.broad_phase is None:
             return None
         if self.differentiable:
@@ -659,14 +811,11 @@ class ImpulseCollisionHandler:
         x1p_pred = host(state_pred.particle_q)[:P] if P else np.zeros((0, 3))
         bq1_pred = host(state_pred.body_q) if B else np.zeros((0, 7))
         vp, bv = vp_minus.copy(), bv_minus.copy()
-        r0 = np.zeros((0, 3))
-        inv_inertia_w = np.zeros((0, 3, 3))
-        if B:
-            rot = quat_to_matrix(bq0[:, 3:7])
-            r0 = self.mesh.levers(rot)
-            inv_inertia_w = rot @ self.body_inv_inertia @ np.swapaxes(rot, 1, 2)
-        x0 = self._vertices(x0p, bq0, r0 if B else None)
-        x1_pred = self._vertices(x1p_pred, bq1_pred)
+        # the vertices at the start (with the rigid ones' lever arms) and the predicted end
+        x0, lever0 = self._pose("start", state_in.particle_q, state_in.body_q)
+        r0 = lever0[self.shape_offset:self.static_offset]
+        x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
+        inv_inertia_w = self._body_inertia_w(bq0, self.body_inv_inertia) if B else np.zeros((0, 3, 3))
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         zones = None  # the fail-safe's impact zones, made when it first acts (rare)
         delta = self.separation
@@ -680,78 +829,20 @@ class ImpulseCollisionHandler:
             if not len(cs) and zones is None:
                 return x1p_pred, bq1_pred, inf_p, inf_b, x1_pred  # nothing changed the prediction
             t_p, t_b = self._owner_times(cs, P, B)
-            x1p = x1p_pred.copy()
-            hit = np.isfinite(t_p)
-            ts = t_p[hit][:, None]
-            x1p[hit] = x0p[hit] + ts * vp_minus[hit] + (h - ts) * vp[hit]
-            if zones is not None:
-                zp, zb = zones.particles, zones.bodies
-                x1p[zp] = x0p[zp] + h * vp[zp]
-            bq1 = bq1_pred.copy()
-            hit_b = np.isfinite(t_b)
-            if hit_b.any():
-                ts = t_b[hit_b]
-                bq1[hit_b, :3] = bq0[hit_b, :3] + ts[:, None] * bv_minus[hit_b, 3:6] + (h - ts)[:, None] * bv[hit_b, 3:6]
-                q_mid = quat_turn(bq0[hit_b, 3:7], bv_minus[hit_b, :3], ts)
-                bq1[hit_b, 3:7] = quat_turn(q_mid, bv[hit_b, :3], h - ts)
-            if zones is not None:
-                if zb.any():
-                    bq1[zb, :3] = bq0[zb, :3] + h * bv[zb, 3:6]
-                    bq1[zb, 3:7] = quat_turn(bq0[zb, 3:7], bv[zb, :3], np.full(int(zb.sum()), h))
-                t_p[zp] = 0.0
-                t_b[zb] = 0.0
-            return x1p, bq1, t_p, t_b, self._vertices(x1p, bq1)
+            if zones is not None:  # an impact zone moves rigidly over the whole substep
+                t_p[zones.particles] = 0.0
+                t_b[zones.bodies] = 0.0
+            x1p, bq1, x1 = self._plan(state_in, state_pred, t_p, t_b, vp, bv, h)
+            return x1p, bq1, t_p, t_b, x1
 
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
         self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta, COVER_SLACK * delta)
-        # 1. proximity contacts at the start of the substep
-        rows = []
-        kind, pair, off, w = self._narrow.near(x0[:-1], delta * (1.0 + 1e-9))  # slack: the exact test is below
+        # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
+        # and solved together
+        kind, pair, idx = self._proximity_rows(x0, delta)
         if len(kind):
-            d = row_norms(off)
-            near = d < delta
-            if near.any():
-                kind, pair, off, d, w = kind[near], pair[near], off[near], d[near], w[near]
-                idx = self._pair_vertices(kind, pair)
-                ee_mask = kind == 1
-                vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
-                vrel = np.einsum("ck,ckd->cd", w, vel)
-                n = np.divide(off, d[:, None], out=np.zeros_like(off), where=d[:, None] > 0)
-                # touching (closer than rounding can resolve): the offset has no reliable
-                # direction; take the face normal / the edges' normal, turned against the
-                # relative motion (a resting vertex pressed down by gravity gets "up")
-                touching = d <= TOUCHING_RELATIVE * delta
-                if touching.any():
-                    y = x0[idx[touching]]
-                    geo = np.where(
-                        ee_mask[touching, None],
-                        cross(y[:, 1] - y[:, 0], y[:, 3] - y[:, 2]),
-                        cross(y[:, 2] - y[:, 1], y[:, 3] - y[:, 1]),
-                    )
-                    v = vrel[touching]
-                    speed = row_norms(v, keepdims=True)
-                    fallback = np.where(speed > 0, -v / np.where(speed > 0, speed, 1.0), [0.0, 0.0, 1.0])
-                    size = row_norms(geo, keepdims=True)
-                    scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))[:, None]
-                    ok = size > 1e-12 * scale * scale
-                    geo = np.where(ok, geo / np.where(ok, size, 1.0), fallback)
-                    geo = np.where(np.einsum("cd,cd->c", geo, v)[:, None] > 0, -geo, geo)
-                    n[touching] = geo
-                vn = np.einsum("cd,cd->c", vrel, n)
-                target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
-                rows.append((kind, pair, idx, w, n, target))
-        kind, pair, idx, d = self._plane_proximity(x0, delta)
-        if len(kind):
-            w = np.zeros((len(kind), 4))
-            w[:, 0] = 1.0  # the vertex alone on side A
-            n = self.planes[pair[:, 1], :3]
-            vel = self._vertex_velocities(idx, vp_minus, bv_minus, r0)
-            vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
-            target = np.maximum(-e * np.minimum(vn, 0.0), SEPARATION_RATE * (delta - d) / h)
-            rows.append((kind, pair, idx, w, n, target))
-        if rows:  # the mesh and the plane proximity contacts, added and solved together
-            kind, pair, idx, w, n, target = (np.concatenate(c) for c in zip(*rows))
+            w, n, target = self._start_geometry(kind, pair, idx, "start", state_pred, h)
             cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
             self._solve(cs, vp, bv, r0, inv_inertia_w)
 
@@ -795,16 +886,7 @@ class ImpulseCollisionHandler:
             self.failsafe_count += 1
         # the result is the last round's plan: every exit of the rounds follows a plan() with
         # nothing changed after it (no contact added, no velocity solved, no zone grown)
-        active = (cs.jn > 0) if len(cs) else np.zeros(0, dtype=bool)
-        if active.any():
-            side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None], cs.w[active], 0.0))
-            # contact point: side A's closest point at t* (linear paths of the planned motion)
-            frac = (cs.toi[active] / h)[:, None, None]
-            y = x0[cs.idx[active]] + frac * (x1[cs.idx[active]] - x0[cs.idx[active]])
-            self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
-            self.last_normals = cs.n[active]
-            self.last_times = cs.toi[active]
-        self._note_body_contacts(cs)
+        self._note_contacts(_CallContacts(cs, x0, x1, h, self.vertex_type))
         if len(cs) == 0 and not failsafe:
             return None
         # the result in the handler's own State (reused: the integrator copies it out)
@@ -953,22 +1035,11 @@ class ImpulseCollisionHandler:
 
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         # 1. proximity contacts at the start of the substep
-        kinds, pairs, idxs = [], [], []
         with paused_tape():  # decisions: off the tape
             # one broad-phase query while the rounds' motion stays near the predicted one
-            x1_pred = self._vertices(state_pred.particle_q.numpy() if P else np.zeros((0, 3)),
-                                     state_pred.body_q.numpy() if B else np.zeros((0, 7)))
+            x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
             self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta)
-            kind, pair, off, _ = self._narrow.near(x0[:nv], delta * (1.0 + 1e-9))  # slack: exact test below
-        near = row_norms(off) < delta
-        kinds.append(kind[near])
-        pairs.append(pair[near])
-        idxs.append(self._pair_vertices(kind[near], pair[near]))
-        kind, pair, idx, _ = self._plane_proximity(x0, delta)
-        kinds.append(kind)
-        pairs.append(pair)
-        idxs.append(idx)
-        kind, pair, idx = np.concatenate(kinds), np.concatenate(pairs), np.concatenate(idxs)
+            kind, pair, idx = self._proximity_rows(x0, delta)
         if len(kind):
             zero = np.zeros(len(kind))
             out, host = geometry(kind, pair, idx, zero, np.zeros(len(kind), dtype=np.int64), X0, inf_p, inf_b)
@@ -1017,17 +1088,8 @@ class ImpulseCollisionHandler:
         if len(cs) == 0 and not failsafe:
             return None
         X1p, BQ1, _, _ = plan()
-        active = cs.jn > 0
-        if active.any():
-            X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
-            x1 = X1.numpy()
-            ia = cs.idx[active]
-            side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None], cs.w[active], 0.0))
-            y = x0[ia] + (cs.toi[active] / h)[:, None, None] * (x1[ia] - x0[ia])
-            self.last_contacts = np.einsum("ck,ckd->cd", side_a, y)
-            self.last_normals = cs.n[active]
-            self.last_times = cs.toi[active]
-        self._note_body_contacts(cs)
+        x1 = R.pose(X1p if P else None, BQ1 if B else None)[0].numpy() if (cs.jn > 0).any() else None
+        self._note_contacts(_CallContacts(cs, x0, x1, h, self.vertex_type))
         return State(
             particle_q=X1p if P else state_pred.particle_q,
             particle_qd=st["vp"] if P else state_pred.particle_qd,

@@ -984,6 +984,24 @@ def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
     return wp.normalize(wp.quatd(a[0], a[1], a[2], c) * q)
 
 
+@wp.func
+def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64, h: wp.float64):
+    """``x0 + t* v- + (h - t*) v+``: the end of a substep ``h`` [s] whose velocity switches from
+    ``v-`` to ``v+`` at the time of impact ``ts`` [s]."""
+    return x0 + ts * v_minus + (h - ts) * v_plus
+
+
+@wp.func
+def time_of_impact_pose(X: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord, ts: wp.float64,
+                        h: wp.float64):
+    """The same for a body pose: the centre of mass as a particle, the orientation turned by
+    ``w-`` for ``t*`` and by ``w+`` for ``h - t*`` (twists angular, linear)."""
+    p = time_of_impact_position(wp.transform_get_translation(X), wp.spatial_bottom(v_minus), wp.spatial_bottom(v_plus),
+                                ts, h)
+    r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(v_minus), ts), wp.spatial_top(v_plus), h - ts)
+    return wp.transformd(p, r)
+
+
 @wp.kernel
 def time_of_impact_particles_kernel(
     x0: wp.array(dtype=wp.vec3d),
@@ -995,8 +1013,8 @@ def time_of_impact_particles_kernel(
     h: wp.float64,
     x1: wp.array(dtype=wp.vec3d),
 ):
-    """Time-of-impact integration ``x0 + t* v- + (h - t*) v+`` of particle ``tid`` with the
-    ``t*`` of its earliest contact ``owner_contact`` (-1: no contact, the prediction stays;
+    """Time-of-impact integration (:func:`time_of_impact_position`) of particle ``tid`` with
+    the ``t*`` of its earliest contact ``owner_contact`` (-1: no contact, the prediction stays;
     -2: impact zone, ``x0 + h v+``)."""
     i = wp.tid()
     k = owner_contact[i]
@@ -1005,8 +1023,7 @@ def time_of_impact_particles_kernel(
     elif k == -2:
         x1[i] = x0[i] + h * v_plus[i]
     else:
-        ts = toi[k]
-        x1[i] = x0[i] + ts * v_minus[i] + (h - ts) * v_plus[i]
+        x1[i] = time_of_impact_position(x0[i], v_minus[i], v_plus[i], toi[k], h)
 
 
 @wp.kernel
@@ -1020,8 +1037,8 @@ def time_of_impact_bodies_kernel(
     h: wp.float64,
     q1: wp.array(dtype=wp.transformd),
 ):
-    """The same for body ``tid``: the centre of mass as a particle, the orientation turned by
-    ``w-`` for ``t*`` and by ``w+`` for ``h - t*``."""
+    """The same for body ``tid`` (:func:`time_of_impact_pose`; an impact zone's body turns from
+    ``t* = 0``)."""
     b = wp.tid()
     k = owner_contact[b]
     if k == -1:
@@ -1030,12 +1047,47 @@ def time_of_impact_bodies_kernel(
     ts = wp.float64(0.0)
     if k >= 0:
         ts = toi[k]
-    X = q0[b]
-    tm = v_minus[b]
-    tp = v_plus[b]
-    p = wp.transform_get_translation(X) + ts * wp.spatial_bottom(tm) + (h - ts) * wp.spatial_bottom(tp)
-    r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(tm), ts), wp.spatial_top(tp), h - ts)
-    q1[b] = wp.transformd(p, r)
+    q1[b] = time_of_impact_pose(q0[b], v_minus[b], v_plus[b], ts, h)
+
+
+@wp.kernel
+def planned_particles_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x_pred: wp.array(dtype=wp.vec3d),
+    v_minus: wp.array(dtype=wp.vec3d),
+    v_plus: wp.array(dtype=wp.vec3d),
+    owner_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    x1: wp.array(dtype=wp.vec3d),
+):
+    """The Gauss-Seidel response's plan (not taped): :func:`time_of_impact_position` of particle
+    ``tid`` at its earliest contact time ``owner_time`` [s] (inf: none, the prediction stays; 0
+    for an impact zone's)."""
+    i = wp.tid()
+    ts = owner_time[i]
+    if wp.isinf(ts):
+        x1[i] = x_pred[i]
+    else:
+        x1[i] = time_of_impact_position(x0[i], v_minus[i], v_plus[i], ts, h)
+
+
+@wp.kernel
+def planned_bodies_kernel(
+    q0: wp.array(dtype=wp.transformd),
+    q_pred: wp.array(dtype=wp.transformd),
+    v_minus: wp.array(dtype=wp.spatial_vectord),
+    v_plus: wp.array(dtype=wp.spatial_vectord),
+    owner_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    q1: wp.array(dtype=wp.transformd),
+):
+    """The same for body ``tid`` (:func:`time_of_impact_pose`)."""
+    b = wp.tid()
+    ts = owner_time[b]
+    if wp.isinf(ts):
+        q1[b] = q_pred[b]
+    else:
+        q1[b] = time_of_impact_pose(q0[b], v_minus[b], v_plus[b], ts, h)
 
 
 # ---------------------------------------------------------------------------- impact zones

@@ -28,25 +28,6 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     return np.where(_ROT_DIAGONAL, 1 - twice, twice).reshape(q.shape[:-1] + (3, 3))
 
 
-# quat_multiply: component k of a b is ((t0 + t1) + t2) + t3 with t_i = a[A[k, i]] b[B[k, i]],
-# negated where NEGATIVE[k, i] (x, y, z, w = 0, 1, 2, 3): the Hamilton product's terms in its
-# usual written order
-_MUL_A = np.array([[3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2], [3, 0, 1, 2]])
-_MUL_B = np.array([[0, 3, 2, 1], [1, 2, 3, 0], [2, 1, 0, 3], [3, 0, 1, 2]])
-_MUL_NEGATIVE = np.array([[False, False, False, True], [False, True, False, False], [False, False, True, False],
-                          [False, True, True, True]])
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products a b (..., 4)."""
-    # all sixteen terms in one product (numpy's per-call overhead is the cost on a few bodies);
-    # t0 + (-t) is the same bits as t0 - t, and the negation keeps the inputs' dtype
-    a, b = np.asarray(a), np.asarray(b)
-    t = a[..., _MUL_A] * b[..., _MUL_B]
-    t = np.where(_MUL_NEGATIVE, -t, t)
-    return ((t[..., 0] + t[..., 1]) + t[..., 2]) + t[..., 3]
-
-
 def cross(a, b):
     """Cross products (..., 3) of ``a`` and ``b`` (..., 3), numpy arrays or torch tensors: the
     arithmetic of ``np.cross`` (the same bits), without its per-call overhead (tens of
@@ -70,14 +51,3 @@ def quat_rotate(q, v):
     u, w = q[..., :3], q[..., 3:4]
     t = 2.0 * cross(u, v)
     return v + w * t + cross(u, t)
-
-
-def quat_turn(q: np.ndarray, omega: np.ndarray, duration: np.ndarray) -> np.ndarray:
-    """Quaternions ``q`` (..., 4) turned by world angular velocities ``omega`` [rad/s] (..., 3) for
-    ``duration`` [s] (...,): the exact rotation, renormalised."""
-    speed = row_norms(omega, keepdims=True)
-    axis = np.divide(omega, speed, out=np.zeros_like(omega), where=speed > 0)
-    half = (speed[..., 0] * duration / 2)[..., None]
-    dq = np.concatenate([axis * np.sin(half), np.cos(half)], -1)
-    out = quat_multiply(dq, q)
-    return out / row_norms(out, keepdims=True)
