@@ -225,7 +225,7 @@ class CandidateNarrowPhase:
         self.reuses = 0  # calls answered from a cover
         self.kept_covers = 0  # cover() calls that kept the current cover (its slack)
 
-    def cover(self, x0, x1, margin: float, slack: float = 0.0) -> None:
+    def cover(self, x0, x1, margin: float, slack: float = 0.0, ahead: float = 0.0, ahead_limit: float = 0.0) -> None:
         """One broad-phase query of the motion ``x0 -> x1`` ((V, 3) float64) widened by
         ``margin`` [m] (>= 0), kept for the calls that it covers (see the class docstring).
 
@@ -235,7 +235,12 @@ class CandidateNarrowPhase:
         motion (:attr:`kept_covers` counts these). Resting contact moves far less than a margin
         per substep, so one query then serves many substeps; the calls it answers still check
         their own motion against the covered one, so the hits are the same as with a fresh
-        cover."""
+        cover.
+
+        ``ahead`` (>= 0) and ``ahead_limit`` [m] (>= 0; both > 0 to act): the fresh query covers
+        each vertex's motion continued past ``x1`` by ``ahead`` times itself, at most
+        ``ahead_limit`` per coordinate, so that the next substeps of steady motion stay inside
+        the kept cover."""
         x0 = np.asarray(x0, dtype=np.float64)
         x1 = np.asarray(x1, dtype=np.float64)
         c = self._cover
@@ -243,6 +248,8 @@ class CandidateNarrowPhase:
                 and c[5].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
             self.kept_covers += 1
             return
+        if ahead > 0.0 and ahead_limit > 0.0:  # the query covers the motion continued past x1
+            x1 = x1 + np.clip(float(ahead) * (x1 - x0), -float(ahead_limit), float(ahead_limit))
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
         self.queries += 1
         # the covered motion's vertex boxes (and scratch for _outside)

@@ -118,6 +118,19 @@ proximity pass still has ``0.45 (COVER_MARGIN - 1) delta - COVER_SLACK delta >= 
 the CCD rounds ``0.45 COVER_MARGIN delta - COVER_SLACK delta``; a call beyond its room queries
 afresh, so the contacts are the same as with a query per substep."""
 
+COVER_AHEAD = 5.0
+"""The substep's broad-phase query covers each vertex's predicted motion continued for this
+many more substeps (at most :data:`COVER_AHEAD_LIMIT` separations per coordinate), so that
+steady motion stays inside its covered box, and the cover is kept (:data:`COVER_SLACK`), for
+several substeps. The hits are the same (the calls check their own motion against the covered
+one); the pairs the query finds grow only along the motion. Measured on the benchmark scenes
+(300 steps): broad-phase queries 2479 -> 872 (cloth_rigid, whose cloth swings about 4
+separations per substep), 1117 -> 386 (cloth_drop), 346 -> 83 (rigid_toss)."""
+
+COVER_AHEAD_LIMIT = 32.0
+"""Longest continuation [separations] of a vertex's motion in the broad-phase query (fast
+vertices leave their cover anyway; this keeps their boxes, and the candidate pairs, small)."""
+
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
@@ -163,6 +176,21 @@ class _Contacts:
         at = np.minimum(np.searchsorted(ordered, keys), len(ordered) - 1)
         return np.where(ordered[at] == keys, order[at], -1)
 
+    def _first(self, kind, pair, idx, w, n, toi, target, timed):
+        """:meth:`add` into the empty set (every substep's first: no pair is in the set yet)."""
+        keys = self._keys(kind, pair)
+        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
+            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
+        c = len(keys)
+        kind = np.array(kind, dtype=np.int64)
+        self.key, self.kind, self.edge_edge = keys, kind, kind == 1
+        self.idx, self.w, self.n = np.array(idx, dtype=np.int64), np.array(w, dtype=np.float64), np.array(n, dtype=np.float64)
+        self.toi, self.target = np.array(toi, dtype=np.float64), np.array(target, dtype=np.float64)
+        self.timed = np.zeros(c, dtype=bool) if timed is None else np.array(timed, dtype=bool)
+        self.jn, self.jt = np.zeros(c), np.zeros((c, 3))
+        zero = np.zeros(c, dtype=np.int64)
+        return np.arange(c), zero, zero.copy()
+
     def at_end(self, kind: np.ndarray, pair: np.ndarray, toi: np.ndarray, h: float) -> np.ndarray:
         """(C,) bool: the pair is in the set already, at the very end of the substep ``h`` [s],
         and detected there again (``toi`` [s])."""
@@ -184,6 +212,8 @@ class _Contacts:
             kept its old time / target (the decisions the taped replay repeats).
         """
         before = len(self.toi)
+        if before == 0:
+            return self._first(kind, pair, idx, w, n, toi, target, timed)
         new_index = np.full(before, -1, dtype=np.int64)
         keep_toi = np.zeros(before, dtype=np.int64)
         keep_target = np.zeros(before, dtype=np.int64)
@@ -531,8 +561,8 @@ class ImpulseCollisionHandler:
         self._launches.launch("start_geometry", contact_geometry_kernel, c, [
             x0, x0, empty("lever_" + pose, self.n_vertices + 1, wp.vec3d), self._vertex_type_w,
             self._vertex_owner_w, put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32),
-            put("geo_source", np.zeros(c, dtype=np.int32), wp.int32),  # 0: at the start (no root)
-            put("geo_detected", np.zeros(c), wp.float64),
+            # sources 0 (at the start: no root) and detected fractions 0: buffers nothing writes
+            empty("zeros_int", c, wp.int32), empty("zeros_float", c, wp.float64),
             put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), self._planes_w,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
@@ -837,7 +867,8 @@ class ImpulseCollisionHandler:
 
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
-        self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta, COVER_SLACK * delta)
+        self._narrow.cover(x0[:-1], x1_pred[:-1], COVER_MARGIN * delta, COVER_SLACK * delta, COVER_AHEAD,
+                           COVER_AHEAD_LIMIT * delta)
         # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
         # and solved together
         kind, pair, idx = self._proximity_rows(x0, delta)
@@ -1038,7 +1069,8 @@ class ImpulseCollisionHandler:
         with paused_tape():  # decisions: off the tape
             # one broad-phase query while the rounds' motion stays near the predicted one
             x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
-            self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta)
+            self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta, COVER_AHEAD,
+                               COVER_AHEAD_LIMIT * delta)
             kind, pair, idx = self._proximity_rows(x0, delta)
         if len(kind):
             zero = np.zeros(len(kind))

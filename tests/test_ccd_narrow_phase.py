@@ -524,6 +524,45 @@ def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh
         narrow.near(np.where(np.arange(len(far))[:, None] == 2, np.nan, far), 0.01)
 
 
+def test_cover_continued_ahead_serves_the_next_substeps_of_steady_motion_with_fresh_hits():
+    """cover(..., ahead, ahead_limit) queries each vertex's motion continued ``ahead`` more
+    substeps (clipped to ``ahead_limit`` per coordinate): the following substeps of the same
+    motion keep it (no query) and give exactly the hits of fresh queries and of mesh_ccd, where a
+    cover of the one substep alone queries again once the motion leaves its slack; a limit below
+    the motion leaves the fast vertices uncovered (a new query)."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    x0, x1, faces = _crumpled_sheets(5)
+    edges = mesh_edges(faces)
+    margin, slack = 0.02, 0.005
+    step = (x1 - x0) * (2.0 * slack / np.abs(x1 - x0).max())  # the largest moves 2 slack per substep
+    fresh = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    ahead = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    plain = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    hits = 0
+    for k in range(4):
+        y0, y1 = x0 + k * step, x0 + (k + 1) * step
+        ahead.cover(y0, y1, margin, slack, 3.0, 1.0)
+        plain.cover(y0, y1, margin, slack)
+        got, near = ahead.ccd(y0, y1), ahead.near(y0, 0.01)
+        for g, w in zip(got, fresh.ccd(y0, y1)):
+            np.testing.assert_array_equal(g, w)
+        for g, w in zip(near, fresh.near(y0, 0.01)):
+            np.testing.assert_array_equal(g, w)
+        ref = mesh_ccd(y0, y1, faces, edges)
+        assert len(got[0]) == int(ref.vf_hit.sum() + ref.ee_hit.sum())
+        hits += len(got[0]) + len(near[0])
+    assert hits > 0
+    assert (ahead.queries, ahead.kept_covers) == (1, 3)  # the first cover served all four substeps
+    assert plain.queries >= 3  # each cover spans one substep: the motion leaves it
+    # a limit below the motion: the continued boxes stop short, the second substep queries
+    short = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    for k in range(2):
+        short.cover(x0 + k * step, x0 + (k + 1) * step, margin, slack, 3.0, 0.1 * slack)
+    assert short.queries == 2
+
+
 def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
     """With a thickness, pairs closer than it are candidates (the broad phase is inflated by
     it): two still sheets 5 cm apart and a 6 cm thickness hit as in mesh_ccd, with and without
