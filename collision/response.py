@@ -64,7 +64,7 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (contact_geometry_kernel, pair_weights_kernel, planned_bodies_kernel, planned_particles_kernel,
+from kernels.contact import (body_world_inverse_inertia_kernel, contact_geometry_kernel, pair_weights_kernel, planned_bodies_kernel, planned_particles_kernel,
                              pose_vertices_kernel, solve_contacts_kernel)
 from sim.model import Model, State
 from sim.rotation import cross, quat_to_matrix, row_norms
@@ -302,6 +302,10 @@ class _CallContacts:
         return self._body_particles
 
 
+_NO_CONTACTS = _CallContacts()
+"""The record of a call without contacts (shared: a record is not changed after it is made)."""
+
+
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
 """Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
 
@@ -439,7 +443,6 @@ class ImpulseCollisionHandler:
         self._no_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=model.device)
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
-        self._levers_uploaded = None  # the lever arms / inertias _solve last uploaded
         self._out = model.state()
         self.last_sweeps = 0
         self.broad_phase = None
@@ -461,13 +464,12 @@ class ImpulseCollisionHandler:
         self._body_mass = np.zeros(0)
         if self.n_bodies:
             self.body_inv_mass = m.body_inv_mass.numpy()
-            self.body_inv_inertia = m.body_inv_inertia.numpy().reshape(-1, 3, 3)
             self._body_mass = m.body_mass.numpy()
             self._body_inertia = m.body_inertia.numpy().reshape(-1, 3, 3)
         self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
         self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
         self.separation = contact_separation(model, mesh)
-        self._last = self._last_call = _CallContacts()  # the last call's contacts (restorable / not)
+        self._last = self._last_call = _NO_CONTACTS  # the last call's contacts (restorable / not)
         self.failsafe_count = 0
         self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
         self.untaped_substeps = 0
@@ -699,10 +701,13 @@ class ImpulseCollisionHandler:
         leaving = at_end & (vn > self._sep_speed)
         return vn, (vn < -eps) | ((vn_path < -eps) & ~leaving)
 
-    def _solve(self, cs: _Contacts, vp, bv, r0, inv_inertia_w):
+    def _solve(self, cs: _Contacts, vp, bv, lever: wp.array, inv_inertia_w: wp.array):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
         updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
-        impulses of ``cs``. Its arrays are the handler's reused buffers (no allocation)."""
+        impulses of ``cs``. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row):
+        device arrays of the vertices' lever arms (:meth:`_pose`) and the bodies' world inverse
+        inertia tensors at the start pose. Its other arrays are the handler's reused buffers (no
+        allocation)."""
         if len(cs) == 0:
             return
         put = self._staging.put
@@ -713,13 +718,6 @@ class ImpulseCollisionHandler:
         jt = put("jt", cs.jt, wp.vec3d)
         sweeps = self._staging.empty("sweeps", 1, wp.int32)
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
-        # the lever arms and world inertias stay the same over a substep's solves: uploaded once
-        # (the arrays are kept, so a later substep's new ones cannot take the same id)
-        if self._levers_uploaded is None or self._levers_uploaded[0] is not r0 \
-                or self._levers_uploaded[1] is not inv_inertia_w:
-            put("r0", r0, wp.vec3d)
-            put("inv_ib", inv_inertia_w, wp.mat33d)
-            self._levers_uploaded = (r0, inv_inertia_w)
         self._launches.launch("solve", solve_contacts_kernel, 1, [
             len(cs),
             put("idx", cs.idx, wp.vec4i),
@@ -728,9 +726,8 @@ class ImpulseCollisionHandler:
             put("target", cs.target, wp.float64),
             put("edge_edge", cs.edge_edge, wp.int32),
             self._vertex_type_w, self._vertex_owner_w,
-            self._staging.empty("r0", len(r0), wp.vec3d), int(self.shape_offset),
-            self._particle_inv_mass_w, self._body_inv_mass_w,
-            self._staging.empty("inv_ib", len(inv_inertia_w), wp.mat33d),
+            lever, 0,  # indexed by vertex
+            self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
             # scratch: the contacts' constants over the sweeps
             self._staging.empty("contact_mass", len(cs), wp.float64),
@@ -749,13 +746,22 @@ class ImpulseCollisionHandler:
         cs.jn, cs.jt = host(jn)[:C].copy(), host(jt)[:C].copy()
         self.last_sweeps = int(host(sweeps)[0])
 
-    def _body_inertia_w(self, body_q, body_frame=None):
-        """World tensors R I R^T of the bodies at poses ``body_q`` (B, 7) for their body-frame
-        tensors ``body_frame`` (B, 3, 3) (default: the inertias)."""
+    def _body_inertia_w(self, body_q):
+        """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
         if not self.n_bodies:
             return np.zeros((0, 3, 3))
         rot = quat_to_matrix(body_q[:, 3:7])
-        return rot @ (self._body_inertia if body_frame is None else body_frame) @ np.swapaxes(rot, 1, 2)
+        return rot @ self._body_inertia @ np.swapaxes(rot, 1, 2)
+
+    def _world_inverse_inertia(self, body_q: wp.array) -> wp.array:
+        """World inverse inertia tensors R I^-1 R^T (B,) of the bodies at the device poses
+        ``body_q`` (:func:`kernels.contact.body_world_inverse_inertia_kernel`, the replay's), in
+        a handler buffer (one row of zeros without bodies)."""
+        out = self._staging.empty("inv_inertia_w", max(self.n_bodies, 1), wp.mat33d)
+        if self.n_bodies:
+            self._launches.launch("inv_inertia_w", body_world_inverse_inertia_kernel, self.n_bodies,
+                                  [body_q, self.model.body_inv_inertia, out])
+        return out
 
     def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
         """Earliest time of impact [s] per particle / body among the contacts of the set (inf
@@ -827,7 +833,7 @@ class ImpulseCollisionHandler:
         self._last = self._last_call = record
 
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
-        self._note_contacts(_CallContacts())
+        self._note_contacts(_NO_CONTACTS)
         if self.broad_phase is None:
             return None
         if self.differentiable:
@@ -845,7 +851,8 @@ class ImpulseCollisionHandler:
         x0, lever0 = self._pose("start", state_in.particle_q, state_in.body_q)
         r0 = lever0[self.shape_offset:self.static_offset]
         x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
-        inv_inertia_w = self._body_inertia_w(bq0, self.body_inv_inertia) if B else np.zeros((0, 3, 3))
+        lever0_w = self._staging.empty("lever_start", self.n_vertices + 1, wp.vec3d)  # the pose's device array
+        inv_inertia_w = self._world_inverse_inertia(state_in.body_q)
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         zones = None  # the fail-safe's impact zones, made when it first acts (rare)
         delta = self.separation
@@ -875,7 +882,7 @@ class ImpulseCollisionHandler:
         if len(kind):
             w, n, target = self._start_geometry(kind, pair, idx, "start", state_pred, h)
             cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
-            self._solve(cs, vp, bv, r0, inv_inertia_w)
+            self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
 
         # 2-5. CCD rounds on the planned motion
         failsafe = False
@@ -912,7 +919,7 @@ class ImpulseCollisionHandler:
             self.ccd_events += int(sel.sum())
             target = np.maximum(-e * vn[sel], SEPARATION_RATE * delta / h)
             cs.add(kind[sel], pair[sel], idx[sel], w[sel], n[sel], toi[sel] * h, target)
-            self._solve(cs, vp, bv, r0, inv_inertia_w)
+            self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
         # the result is the last round's plan: every exit of the rounds follows a plan() with
@@ -959,7 +966,6 @@ class ImpulseCollisionHandler:
         bv_minus = vm_b.numpy() if B else np.zeros((0, 6))
         vp, bv = vp_minus.copy(), bv_minus.copy()
         r0 = L0.numpy()[self.shape_offset:self.shape_offset + self.n_shape] if self.n_shape else np.zeros((0, 3))
-        inv_inertia_w = inv_I.numpy().reshape(-1, 3, 3) if B else np.zeros((0, 3, 3))
         zones = _ImpactZones(P, B, self.particle_inv_mass)
         delta = self.separation
         self._sep_speed = delta / h
@@ -1018,7 +1024,7 @@ class ImpulseCollisionHandler:
             # decide: the active set from projected Gauss-Seidel, then replay the exact normal
             # solve and repair the set (drop pulling contacts, add violated ones) until it holds
             with paused_tape():
-                self._solve(cs, vp, bv, r0, inv_inertia_w)
+                self._solve(cs, vp, bv, L0, inv_I)
             mobile = ((cs.w != 0) & self._mobile_vertex[cs.idx]).any(axis=1)
             active = (cs.jn > 0) & mobile
             taped = active.copy()  # the set whose solve the tape holds (the first trial's)
