@@ -46,7 +46,8 @@ class Staging:
 
     ``put(name, data, dtype)`` returns an array of at least ``max(len(data), 1)`` rows whose first
     ``len(data)`` rows hold ``data`` (the rest is stale: pass the count to the kernel).
-    ``empty(name, rows, dtype)`` returns one without filling it.
+    ``empty(name, rows, dtype)`` returns one without filling it. ``zeros(name, rows, dtype)``
+    returns one that holds zeros (for constant zero inputs; nothing may write it).
     """
 
     def __init__(self, device) -> None:
@@ -60,6 +61,10 @@ class Staging:
             a = wp.zeros(size, dtype=dtype, device=self.device)
             self._arrays[name] = a
         return a
+
+    def zeros(self, name: str, rows: int, dtype) -> wp.array:
+        # a new array is allocated zero-filled and, under its own name space, never written
+        return self.empty("zeros:" + name, rows, dtype)
 
     def put(self, name: str, data: np.ndarray, dtype) -> wp.array:
         return upload(self.empty(name, len(data), dtype), data)

@@ -126,12 +126,9 @@ class CollisionMesh:
         the world frame, for the bodies' rotation matrices (B, 3, 3)."""
         return np.einsum("nij,nj->ni", rotations[self.shape_body], self.shape_local)
 
-    def positions(self, particle_q: np.ndarray, body_q: np.ndarray, levers: np.ndarray | None = None,
-                  out: np.ndarray | None = None) -> np.ndarray:
+    def positions(self, particle_q: np.ndarray, body_q: np.ndarray) -> np.ndarray:
         """World positions (V, 3) [m] for particle positions (P, 3) and body poses (B, 7)
-        (centre of mass, quaternion x y z w), on the host. ``levers``: the rigid vertices'
-        :meth:`levers` at ``body_q`` when the caller has them already (the same values).
-        ``out``: a (V, 3) float64 array to write them into (returned), instead of a new one.
+        (centre of mass, quaternion x y z w), on the host.
 
         Raises:
             ValueError: naming the argument whose length does not match the model.
@@ -142,11 +139,10 @@ class CollisionMesh:
             raise ValueError(f"particle_q: the state has {len(particle_q)} particles, the model {self.particle_count}")
         if len(body_q) != self.body_count:
             raise ValueError(f"body_q: the state has {len(body_q)} bodies, the model {self.body_count}")
-        x = np.empty((self.vertex_count, 3)) if out is None else out
+        x = np.empty((self.vertex_count, 3))
         x[:self.shape_offset] = particle_q
         if self.shape_count:
-            if levers is None:
-                levers = self.levers(quat_to_matrix(body_q[:, 3:7]))
+            levers = self.levers(quat_to_matrix(body_q[:, 3:7]))
             np.add(body_q[self.shape_body, :3], levers, out=x[self.shape_offset:self.static_offset])
         x[self.static_offset:] = self.static_vertices
         return x

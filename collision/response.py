@@ -106,7 +106,7 @@ put a hair below (rigid vertices, which only the handler holds, keep the plain `
 COVER_MARGIN = 4.0
 """Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
 and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
-predicted ones reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`); a round that
+covered boxes (the predicted motion continued, :data:`COVER_AHEAD`) reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`); a round that
 moves further queries afresh."""
 
 COVER_SLACK = 1.0
@@ -493,15 +493,19 @@ class ImpulseCollisionHandler:
         origin, and their lever arms (V + 1, 3) [m] from the owning body's centre of mass (0
         for the others), for the device arrays ``particle_q`` (P,) and ``body_q`` (B,): the
         replay's pose (:func:`kernels.contact.pose_vertices_kernel`) into the handler's buffers
-        ``name``. On the CPU the results are views of those buffers, overwritten by the next
-        pose into ``name``."""
+        ``name``.
+
+        Returns:
+            (positions, lever arms) on the host (on the CPU views of the buffers, overwritten by
+            the next pose into ``name``) and the same two device arrays.
+        """
         n = self.n_vertices + 1
         x = self._staging.empty("x_" + name, n, wp.vec3d)
         lever = self._staging.empty("lever_" + name, n, wp.vec3d)
         self._launches.launch(("pose", name), pose_vertices_kernel, n, [
             particle_q if self.n_particles else self._no_vec, body_q if self.n_bodies else self._no_pose,
             self._vertex_type_w, self._vertex_owner_w, self._local_w, x, lever])
-        return host(x)[:n], host(lever)[:n]
+        return host(x)[:n], host(lever)[:n], x, lever
 
     def _plan(self, state_in: State, state_pred: State, particle_time, body_time, vp, bv, h: float):
         """End positions of the substep ``h`` [s] for the particles' / bodies' earliest contact
@@ -545,26 +549,25 @@ class ImpulseCollisionHandler:
         return (np.concatenate([kind, plane_kind]), np.concatenate([pair, plane_pair]),
                 np.concatenate([self._pair_vertices(kind, pair), plane_idx]))
 
-    def _start_geometry(self, kind, pair, idx, pose, state_pred: State, h: float):
+    def _start_geometry(self, kind, pair, idx, x0: wp.array, lever: wp.array, state_pred: State, h: float):
         """Weights (C, 4), unit normals (C, 3) and target normal velocities (C,) [m/s] of the
         proximity contacts ``kind``, ``pair``, ``idx`` (:meth:`_proximity_rows`) at the start
         positions: :func:`kernels.contact.contact_geometry_kernel`, the replay's definition
         (the offset's direction, or for touching pairs the face / edges' normal turned against
         the relative motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the
-        velocities ``v-`` of ``state_pred``). ``pose``: the name of the start pose's buffers
+        velocities ``v-`` of ``state_pred``). ``x0``, ``lever``: the start pose's device arrays
         (:meth:`_pose`)."""
         c = len(kind)
         put, empty = self._staging.put, self._staging.empty
-        x0 = empty("x_" + pose, self.n_vertices + 1, wp.vec3d)
         out = (empty("geo_toi", c, wp.float64), empty("geo_w", c, wp.vec4d), empty("geo_n", c, wp.vec3d),
                empty("geo_target", c, wp.float64))
         vm_p = state_pred.particle_qd if self.n_particles else self._no_vec
         vm_b = state_pred.body_qd if self.n_bodies else self._no_twist
         self._launches.launch("start_geometry", contact_geometry_kernel, c, [
-            x0, x0, empty("lever_" + pose, self.n_vertices + 1, wp.vec3d), self._vertex_type_w,
+            x0, x0, lever, self._vertex_type_w,
             self._vertex_owner_w, put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32),
-            # sources 0 (at the start: no root) and detected fractions 0: buffers nothing writes
-            empty("zeros_int", c, wp.int32), empty("zeros_float", c, wp.float64),
+            # sources 0 (at the start: no root) and detected fractions 0
+            self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
             put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), self._planes_w,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
@@ -828,6 +831,16 @@ class ImpulseCollisionHandler:
             else:
                 setattr(self, c, v)
 
+    def _check_states(self, state_in: State, state_pred: State) -> None:
+        """Raises a ValueError naming the array of ``state_in`` / ``state_pred`` with fewer rows
+        than the model's particles / bodies (the kernels would read past its end)."""
+        for label, state in (("state_in", state_in), ("state_pred", state_pred)):
+            for name, count in (("particle_q", self.n_particles), ("particle_qd", self.n_particles),
+                                ("body_q", self.n_bodies), ("body_qd", self.n_bodies)):
+                if count and (getattr(state, name) is None or getattr(state, name).shape[0] < count):
+                    have = 0 if getattr(state, name) is None else getattr(state, name).shape[0]
+                    raise ValueError(f"{label}.{name}: {have} rows, the model has {count}")
+
     def _note_contacts(self, record: _CallContacts) -> None:
         """Makes ``record`` the last call's contacts (:attr:`last_contacts`, ...)."""
         self._last = self._last_call = record
@@ -836,6 +849,7 @@ class ImpulseCollisionHandler:
         self._note_contacts(_NO_CONTACTS)
         if self.broad_phase is None:
             return None
+        self._check_states(state_in, state_pred)
         if self.differentiable:
             return self._call_replayed(state_in, state_pred, h)
         P, B = self.n_particles, self.n_bodies
@@ -848,10 +862,9 @@ class ImpulseCollisionHandler:
         bq1_pred = host(state_pred.body_q) if B else np.zeros((0, 7))
         vp, bv = vp_minus.copy(), bv_minus.copy()
         # the vertices at the start (with the rigid ones' lever arms) and the predicted end
-        x0, lever0 = self._pose("start", state_in.particle_q, state_in.body_q)
+        x0, lever0, x0_w, lever0_w = self._pose("start", state_in.particle_q, state_in.body_q)
         r0 = lever0[self.shape_offset:self.static_offset]
         x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
-        lever0_w = self._staging.empty("lever_start", self.n_vertices + 1, wp.vec3d)  # the pose's device array
         inv_inertia_w = self._world_inverse_inertia(state_in.body_q)
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         zones = None  # the fail-safe's impact zones, made when it first acts (rare)
@@ -880,7 +893,7 @@ class ImpulseCollisionHandler:
         # and solved together
         kind, pair, idx = self._proximity_rows(x0, delta)
         if len(kind):
-            w, n, target = self._start_geometry(kind, pair, idx, "start", state_pred, h)
+            w, n, target = self._start_geometry(kind, pair, idx, x0_w, lever0_w, state_pred, h)
             cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
             self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
 

@@ -57,7 +57,8 @@ def copy_state(src: State, dst: State, names=("particle_q", "particle_qd", "body
     for name in names:
         a, b = getattr(src, name), getattr(dst, name)
         if a is not b and a.shape[0] > 0:
-            if not taped and a.device.is_cpu and b.device.is_cpu and active_tape() is None:
+            if not taped and a.device.is_cpu and b.device.is_cpu and a.shape == b.shape and a.dtype == b.dtype \
+                    and active_tape() is None:
                 host(b)[:] = host(a)
             else:
                 wp.copy(b, a)

@@ -556,11 +556,17 @@ def test_cover_continued_ahead_serves_the_next_substeps_of_steady_motion_with_fr
     assert hits > 0
     assert (ahead.queries, ahead.kept_covers) == (1, 3)  # the first cover served all four substeps
     assert plain.queries >= 3  # each cover spans one substep: the motion leaves it
-    # a limit below the motion: the continued boxes stop short, the second substep queries
-    short = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
-    for k in range(2):
-        short.cover(x0 + k * step, x0 + (k + 1) * step, margin, slack, 3.0, 0.1 * slack)
-    assert short.queries == 2
+    for sign in (1.0, -1.0):  # the continuation follows the motion's sign, per coordinate
+        # a limit above the motion: the continued boxes cover the next substeps
+        long = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+        for k in range(3):
+            long.cover(x0 + sign * k * step, x0 + sign * (k + 1) * step, margin, slack, 3.0, 1.0)
+        assert (long.queries, long.kept_covers) == (1, 2)
+        # a limit below it: the continued boxes stop short, the second substep queries
+        short = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+        for k in range(2):
+            short.cover(x0 + sign * k * step, x0 + sign * (k + 1) * step, margin, slack, 3.0, 0.1 * slack)
+        assert short.queries == 2
 
 
 def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():

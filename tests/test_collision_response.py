@@ -47,6 +47,31 @@ def test_cloth_lands_on_a_static_box_without_penetration():
     assert z.min() >= 0.5 - 1e-9 and z.max() < 0.51  # resting on the top face at z = 0.5
 
 
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_handler_refuses_states_shorter_than_the_model_naming_the_array(differentiable):
+    """The handler's kernels index the states by particle / body: a state of another (smaller)
+    model gets a ValueError naming the state and the array, not a read past its end."""
+    from sim.model import State
+
+    b = ModelBuilder()
+    b.add_cloth_grid((-0.15, -0.15, 0.6), None, 3, 3, 0.1, 0.1, density=0.2, stretch_stiffness=20,
+                     shear_stiffness=10, bend_stiffness=1, damping=0.0)
+    v, t = box_mesh((0.25, 0.25, 0.25))
+    b.add_static_mesh(v + [0, 0, 0.25], t)
+    model = b.finalize()
+    handler = ImpulseCollisionHandler(model, differentiable=differentiable)
+    good = model.state()
+    short = State(particle_q=wp.zeros(3, dtype=wp.vec3d), particle_qd=good.particle_qd, body_q=good.body_q,
+                  body_qd=good.body_qd)
+    with pytest.raises(ValueError, match=r"state_in\.particle_q: 3 rows, the model has 16"):
+        handler(short, good, 1.0 / 480)
+    short = State(particle_q=good.particle_q, particle_qd=wp.zeros(2, dtype=wp.vec3d), body_q=good.body_q,
+                  body_qd=good.body_qd)
+    with pytest.raises(ValueError, match=r"state_pred\.particle_qd: 2 rows"):
+        handler(good, short, 1.0 / 480)
+    assert handler(good, model.state(), 1.0 / 480) is None  # far apart: no contact
+
+
 def test_rigid_bodies_dropped_on_a_static_box_never_penetrate():
     b = ModelBuilder()
     v, t = box_mesh((0.5, 0.5, 0.25))
