@@ -169,8 +169,8 @@ class CandidateNarrowPhase:
     A collision response that runs several rounds per step can share one broad-phase query
     between them: :meth:`cover` queries the swept boxes from the start positions to the
     predicted end positions (optionally continued further along each vertex's motion, so that
-    later substeps of steady motion stay inside), widened by a margin ``m``; a later :meth:`near` with ``max_distance
-    = d <= m`` (every position within ``(m - d) / 2``, per coordinate, of the box of its
+    later substeps of steady motion stay inside), widened by a margin ``m``; a later
+    :meth:`near` with ``max_distance = d <= m`` (every position within ``(m - d) / 2``, per coordinate, of the box of its
     vertex's covered motion) or :meth:`ccd` with thickness ``t`` (start and end positions
     within ``(m - t) / 2`` of those boxes; ``COVER_SAFETY`` instead of 1/2 in both) reuses those
     candidates, which then hold every pair the query of its own would have found (a

@@ -106,9 +106,10 @@ class ContactReplay:
         self.planes = wp.array(p, dtype=wp.vec4d, device=device)
         self.friction = float(friction)
         self.restitution = float(restitution)
-        self._empty_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
-        self._empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
-        self._empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
+        # stand-ins for the arrays of a model without particles / bodies (never read)
+        self.empty_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
+        self.empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
+        self.empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
         self.largest_system = 0
         self._arena = Arena(device)  # the arrays of calls without a tape
 
@@ -159,7 +160,7 @@ class ContactReplay:
         lever = self._zeros(n, wp.vec3d)
         wp.launch(
             K.pose_vertices_kernel, dim=n,
-            inputs=[self._or(particle_q, self._empty_vec), self._or(body_q, self._empty_pose), self.vertex_type,
+            inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local],
             outputs=[x, lever], device=self.device,
         )
@@ -194,8 +195,8 @@ class ContactReplay:
             inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, self._ints(rows["pairs"], wp.vec4i),
                     self._ints(rows["kinds"]), self._ints(rows["sources"]), self._floats(rows["detected"]),
                     self._ints(rows["plane_ids"]), self.planes,
-                    self._or(vm_p, self._empty_vec), self._or(vc_p, self._empty_vec),
-                    self._or(vm_b, self._empty_twist), self._or(vc_b, self._empty_twist),
+                    self._or(vm_p, self.empty_vec), self._or(vc_p, self.empty_vec),
+                    self._or(vm_b, self.empty_twist), self._or(vc_b, self.empty_twist),
                     self._floats(particle_time), self._floats(body_time), wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
                     wp.float64(max_derivative), int(bool(nearest_slot))],
@@ -264,7 +265,7 @@ class ContactReplay:
             rhs = self._zeros(n_u, wp.float64)
             wp.launch(K.contact_rhs_kernel, dim=n_u,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self._empty_vec), self._or(vb, self._empty_twist)],
+                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
             solution = self._dense_solve(matrix, rhs)
             normal = self._zeros(c, wp.vec3d)
@@ -279,8 +280,8 @@ class ContactReplay:
             friction = self._zeros(c, wp.vec3d)
             wp.launch(K.friction_impulses_kernel, dim=c,
                       inputs=[normal, self._floats(share), pairs_w, weights, normals, self.vertex_type,
-                              self.vertex_owner, lever, *sides, *masses, self._or(vp, self._empty_vec),
-                              self._or(vb, self._empty_twist), wp.float64(self.friction)],
+                              self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
+                              self._or(vb, self.empty_twist), wp.float64(self.friction)],
                       outputs=[friction], device=self.device)
             vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b, True)
             normal, (vp, vb) = normal_pass(vp_f, vb_f)
@@ -357,10 +358,10 @@ class ContactReplay:
         if not (in_p or in_b):
             return vp, vb
         pz, bz = self._ints(particle_zone), self._ints(body_zone)
-        xp = self._or(particle_q, self._empty_vec)
-        vp_in = self._or(vp, self._empty_vec)
-        bq = self._or(body_q, self._empty_pose)
-        vb_in = self._or(vb, self._empty_twist)
+        xp = self._or(particle_q, self.empty_vec)
+        vp_in = self._or(vp, self.empty_vec)
+        bq = self._or(body_q, self.empty_pose)
+        vb_in = self._or(vb, self.empty_twist)
         b_mass = self._or(body_mass, self.body_inv_mass)  # any float64 array when there is no body
         b_inertia = self._or(body_inertia, self._zeros(1, wp.mat33d))
         nz = max(int(n_zones), 1)

@@ -64,8 +64,9 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (body_world_inverse_inertia_kernel, contact_geometry_kernel, pair_weights_kernel, planned_bodies_kernel, planned_particles_kernel,
-                             pose_vertices_kernel, solve_contacts_kernel)
+from kernels.contact import (body_world_inverse_inertia_kernel, contact_geometry_kernel, pair_weights_kernel,
+                             planned_bodies_kernel, planned_particles_kernel, pose_vertices_kernel,
+                             solve_contacts_kernel)
 from sim.model import Model, State
 from sim.rotation import cross, quat_to_matrix, row_norms
 
@@ -106,8 +107,8 @@ put a hair below (rigid vertices, which only the handler holds, keep the plain `
 COVER_MARGIN = 4.0
 """Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
 and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
-covered boxes (the predicted motion continued, :data:`COVER_AHEAD`) reuse its candidates (:class:`collision.ccd.CandidateNarrowPhase`); a round that
-moves further queries afresh."""
+covered boxes (the predicted motion continued, :data:`COVER_AHEAD`) reuse its candidates
+(:class:`collision.ccd.CandidateNarrowPhase`); a round that moves further queries afresh."""
 
 COVER_SLACK = 1.0
 """A substep keeps an earlier substep's broad-phase query (instead of a new one) while its start
@@ -176,11 +177,8 @@ class _Contacts:
         at = np.minimum(np.searchsorted(ordered, keys), len(ordered) - 1)
         return np.where(ordered[at] == keys, order[at], -1)
 
-    def _first(self, kind, pair, idx, w, n, toi, target, timed):
+    def _first(self, keys, kind, idx, w, n, toi, target, timed):
         """:meth:`add` into the empty set (every substep's first: no pair is in the set yet)."""
-        keys = self._keys(kind, pair)
-        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
-            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         c = len(keys)
         kind = np.array(kind, dtype=np.int64)
         self.key, self.kind, self.edge_edge = keys, kind, kind == 1
@@ -211,16 +209,16 @@ class _Contacts:
             arguments each contact now takes its geometry from (-1: unchanged), and whether it
             kept its old time / target (the decisions the taped replay repeats).
         """
+        keys = self._keys(kind, pair)
+        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
+            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         before = len(self.toi)
         if before == 0:
-            return self._first(kind, pair, idx, w, n, toi, target, timed)
+            return self._first(keys, kind, idx, w, n, toi, target, timed)
         new_index = np.full(before, -1, dtype=np.int64)
         keep_toi = np.zeros(before, dtype=np.int64)
         keep_target = np.zeros(before, dtype=np.int64)
         timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
-        keys = self._keys(kind, pair)
-        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
-            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         row = self._rows(keys)
         old = np.flatnonzero(row >= 0)  # arguments whose pair is in the set already
         if len(old):
@@ -416,8 +414,6 @@ class ImpulseCollisionHandler:
         # vertex-plane contacts
         self.vertex_type = np.append(mesh.vertex_type, _STATIC).astype(np.int64)
         self.vertex_owner = np.append(mesh.vertex_owner, 0).astype(np.int64)
-        self._vertex_type_w = wp.array(self.vertex_type.astype(np.int32), dtype=wp.int32, device=model.device)
-        self._vertex_owner_w = wp.array(self.vertex_owner.astype(np.int32), dtype=wp.int32, device=model.device)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
         # the vertices the vertex-plane tests cover (movable particles and the rigid surface
         # vertices) and the planes' normals / offsets. The integrator's plane stage has already
@@ -432,16 +428,7 @@ class ImpulseCollisionHandler:
         self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
-        local = np.zeros((self.n_vertices + 1, 3))  # body-frame / world positions, the dummy at 0
-        local[: self.n_vertices] = mesh.local
-        self._local_w = wp.array(local, dtype=wp.vec3d, device=model.device)
-        planes = self.planes if len(self.planes) else np.zeros((1, 4))
-        self._planes_w = wp.array(planes, dtype=wp.vec4d, device=model.device)
-        # stand-ins for the arrays of a model without particles / bodies (never read)
-        self._no_vec = wp.zeros(1, dtype=wp.vec3d, device=model.device)
-        self._no_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=model.device)
-        self._no_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=model.device)
-        self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)
+        self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
         self._out = model.state()
         self.last_sweeps = 0
@@ -475,15 +462,15 @@ class ImpulseCollisionHandler:
         self.untaped_substeps = 0
         self.active_set_repairs = 0
         self.unsettled_active_sets = 0
-        self._replay = None
-        if self.differentiable:
-            self._replay = ContactReplay(
-                mesh.vertex_type, mesh.vertex_owner, mesh.local,
-                m.particle_inv_mass if self.n_particles else None,
-                m.body_inv_mass if self.n_bodies else None,
-                m.body_inv_inertia if self.n_bodies else None,
-                self.planes, m.friction, m.restitution, m.device,
-            )
+        # the replay's stages (differentiable=True) and its device copies of the mesh (vertex
+        # kinds, owners, local positions, planes), which the Gauss-Seidel path's kernels read too
+        self._replay = ContactReplay(
+            mesh.vertex_type, mesh.vertex_owner, mesh.local,
+            m.particle_inv_mass if self.n_particles else None,
+            m.body_inv_mass if self.n_bodies else None,
+            m.body_inv_inertia if self.n_bodies else None,
+            self.planes, m.friction, m.restitution, m.device,
+        )
 
     # ------------------------------------------------------------------------------------------
     # geometry
@@ -499,12 +486,12 @@ class ImpulseCollisionHandler:
             (positions, lever arms) on the host (on the CPU views of the buffers, overwritten by
             the next pose into ``name``) and the same two device arrays.
         """
-        n = self.n_vertices + 1
+        n, R = self.n_vertices + 1, self._replay
         x = self._staging.empty("x_" + name, n, wp.vec3d)
         lever = self._staging.empty("lever_" + name, n, wp.vec3d)
         self._launches.launch(("pose", name), pose_vertices_kernel, n, [
-            particle_q if self.n_particles else self._no_vec, body_q if self.n_bodies else self._no_pose,
-            self._vertex_type_w, self._vertex_owner_w, self._local_w, x, lever])
+            particle_q if self.n_particles else R.empty_vec, body_q if self.n_bodies else R.empty_pose,
+            R.vertex_type, R.vertex_owner, R.local, x, lever])
         return host(x)[:n], host(lever)[:n], x, lever
 
     def _plan(self, state_in: State, state_pred: State, particle_time, body_time, vp, bv, h: float):
@@ -557,18 +544,18 @@ class ImpulseCollisionHandler:
         the relative motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the
         velocities ``v-`` of ``state_pred``). ``x0``, ``lever``: the start pose's device arrays
         (:meth:`_pose`)."""
-        c = len(kind)
+        c, R = len(kind), self._replay
         put, empty = self._staging.put, self._staging.empty
         out = (empty("geo_toi", c, wp.float64), empty("geo_w", c, wp.vec4d), empty("geo_n", c, wp.vec3d),
                empty("geo_target", c, wp.float64))
-        vm_p = state_pred.particle_qd if self.n_particles else self._no_vec
-        vm_b = state_pred.body_qd if self.n_bodies else self._no_twist
+        vm_p = state_pred.particle_qd if self.n_particles else R.empty_vec
+        vm_b = state_pred.body_qd if self.n_bodies else R.empty_twist
         self._launches.launch("start_geometry", contact_geometry_kernel, c, [
-            x0, x0, lever, self._vertex_type_w,
-            self._vertex_owner_w, put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32),
+            x0, x0, lever, R.vertex_type, R.vertex_owner, put("geo_idx", idx, wp.vec4i),
+            put("geo_kind", kind, wp.int32),
             # sources 0 (at the start: no root) and detected fractions 0
             self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
-            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), self._planes_w,
+            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), R.planes,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, *out])
@@ -728,7 +715,7 @@ class ImpulseCollisionHandler:
             put("n", cs.n, wp.vec3d),
             put("target", cs.target, wp.float64),
             put("edge_edge", cs.edge_edge, wp.int32),
-            self._vertex_type_w, self._vertex_owner_w,
+            self._replay.vertex_type, self._replay.vertex_owner,
             lever, 0,  # indexed by vertex
             self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
@@ -819,15 +806,14 @@ class ImpulseCollisionHandler:
         """The statistics (life counters, last call's contacts), for :meth:`restore_stats` after
         calls whose result an integrator discards (a trial pass, a rejected substep)."""
         stats = {c: getattr(self, c) for c in self._COUNTERS + ("_last",)}
-        stats["largest_system"] = self._replay.largest_system if self._replay is not None else 0
+        stats["largest_system"] = self._replay.largest_system
         return stats
 
     def restore_stats(self, stats: dict) -> None:
         """Puts back the statistics of :meth:`save_stats`."""
         for c, v in stats.items():
             if c == "largest_system":
-                if self._replay is not None:
-                    self._replay.largest_system = v
+                self._replay.largest_system = v
             else:
                 setattr(self, c, v)
 

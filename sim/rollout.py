@@ -311,7 +311,7 @@ class _Runner:
             self.stats["ccd_events"] = self.handler.ccd_events
             self.stats["untaped_substeps"] = self.handler.untaped_substeps
             self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
-            if self.handler._replay is not None:
+            if self.handler.differentiable:
                 self.stats["largest_system"] = self.handler._replay.largest_system
         return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
 

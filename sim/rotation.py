@@ -7,25 +7,21 @@ from __future__ import annotations
 import numpy as np
 
 
-# quat_to_matrix: row-major entry k is 1 - 2 (p + SIGN[k] r) where DIAGONAL[k], else 2 (p + SIGN[k] r),
-# for the products p = q[FIRST[0][k]] q[FIRST[1][k]] and r = q[SECOND[0][k]] q[SECOND[1][k]]
-# (x, y, z, w = 0, 1, 2, 3): the textbook formula's arithmetic, entry by entry
-_ROT_FIRST = (np.array([1, 0, 0, 0, 0, 1, 0, 1, 0]), np.array([1, 1, 2, 1, 0, 2, 2, 2, 0]))
-_ROT_SECOND = (np.array([2, 2, 1, 2, 2, 0, 1, 0, 1]), np.array([2, 3, 3, 3, 2, 3, 3, 3, 1]))
-_ROT_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
-_ROT_DIAGONAL = np.array([True, False, False, False, True, False, False, False, True])
-
-
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of unit quaternions (..., 4)."""
-    # all nine entries in a few whole-array operations (not one per entry): the collision
-    # response calls this several times per substep on a few bodies, where numpy's per-call
-    # overhead is the whole cost. Same arithmetic per entry as 1 - 2 (y y + z z), 2 (x y - z w), ...
     q = np.asarray(q, dtype=np.float64)
-    first = q[..., _ROT_FIRST[0]] * q[..., _ROT_FIRST[1]]
-    second = q[..., _ROT_SECOND[0]] * q[..., _ROT_SECOND[1]]
-    twice = 2 * (first + _ROT_SIGN * second)
-    return np.where(_ROT_DIAGONAL, 1 - twice, twice).reshape(q.shape[:-1] + (3, 3))
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - z * w)
+    out[..., 0, 2] = 2 * (x * z + y * w)
+    out[..., 1, 0] = 2 * (x * y + z * w)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - x * w)
+    out[..., 2, 0] = 2 * (x * z - y * w)
+    out[..., 2, 1] = 2 * (y * z + x * w)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
 
 
 def cross(a, b):
