@@ -30,6 +30,7 @@ from collision.buffers import RecordedLaunches, host, upload
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
+from kernels.contact import pair_proximity_kernel
 
 __all__ = ["CandidateNarrowPhase", "MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
 
@@ -210,6 +211,7 @@ class CandidateNarrowPhase:
                                dtype=wp.vec2i, device=dev)
         self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._pairs = wp.empty(0, dtype=wp.vec2i, device=dev)
+        self._kind = wp.empty(0, dtype=wp.int32, device=dev)
         self._time = wp.empty(0, dtype=self._real, device=dev)
         self._source = wp.empty(0, dtype=wp.int32, device=dev)
         self._offset = wp.empty(0, dtype=wp.vec3d, device=dev)
@@ -221,10 +223,18 @@ class CandidateNarrowPhase:
             self._x0_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
             self._x1_32 = wp.empty(n, dtype=wp.vec3f, device=dev)
         self._cover = None  # (buffers, box lo, box hi, margin, broad-phase query count, scratch) of the last cover()
+        # the pairs that a CCD from near()'s positions can hit (see near's motion_radius), per kind
+        self._reach_pairs = [wp.empty(0, dtype=wp.vec2i, device=dev) for _ in range(2)]
+        self._reach_counter = wp.zeros(2, dtype=wp.int32, device=dev)
+        self._radius = wp.empty(n, dtype=wp.float64, device=dev)
+        self._no_radius = wp.empty(0, dtype=wp.float64, device=dev)
+        self._reach = None  # (cover, positions, radii, buffers) of the last near() with motion radii
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
         self.reuses = 0  # calls answered from a cover
         self.kept_covers = 0  # cover() calls that kept the current cover (its slack)
+        self.reach_calls = 0  # ccd() calls that tested only the pairs near() kept for them
+        self.tested = 0  # candidate pairs that ccd() tested (for benchmarks)
 
     def cover(self, x0, x1, margin: float, slack: float = 0.0, ahead: float = 0.0, ahead_limit: float = 0.0) -> None:
         """One broad-phase query of the motion ``x0 -> x1`` ((V, 3) float64) widened by
@@ -256,6 +266,11 @@ class CandidateNarrowPhase:
         # the covered motion's vertex boxes (and scratch for _outside)
         self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count,
                        np.empty_like(x0))
+
+    def covered_candidates(self) -> int:
+        """Candidate pairs of the current cover (0 without one)."""
+        c = self._cover
+        return 0 if c is None else c[0][1] + c[0][3]
 
     @staticmethod
     def _outside(x0, x1, cover) -> float:
@@ -294,34 +309,35 @@ class CandidateNarrowPhase:
             n = max(n, 2 * self._pairs.shape[0], 64)
             dev = self.device
             self._pairs = wp.empty(n, dtype=wp.vec2i, device=dev)
+            self._kind = wp.empty(n, dtype=wp.int32, device=dev)
             self._time = wp.empty(n, dtype=self._real, device=dev)
             self._source = wp.empty(n, dtype=wp.int32, device=dev)
             self._offset = wp.empty(n, dtype=wp.vec3d, device=dev)
             self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
 
     def _collect(self, buffers, launch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Runs ``launch(kind, pairs, count)`` for both kinds (each appends to the output buffers
-        through the counter) and returns (kind (K,), pair (K, 2) int64, row order (K,)): the hits
-        sorted by kind, then lexicographically by pair (the order of ``BroadPhase.query``)."""
+        """Runs ``launch(vf, n_vf, ee, n_ee)`` once for both kinds' candidates (it appends the
+        hits and their kinds to the output buffers through the counter) and returns (kind (K,),
+        pair (K, 2) int64, row order (K,)): the hits sorted by kind, then lexicographically by
+        pair (the order of ``BroadPhase.query``)."""
         vf, n_vf, ee, n_ee = buffers
         self._reserve(n_vf + n_ee)
         self._counter.zero_()
-        counts = []
-        for kind, pairs, n in ((0, vf, n_vf), (1, ee, n_ee)):
-            before = int(host(self._counter)[0]) if kind else 0
-            if n:
-                launch(kind, pairs, n)
-            counts.append(int(host(self._counter)[0]) - before)
-        total = counts[0] + counts[1]
+        if n_vf + n_ee:
+            launch(vf, n_vf, ee, n_ee)
+        total = int(host(self._counter)[0])
         if total == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
-        kind = np.repeat(np.array([0, 1], dtype=np.int64), counts)
+        kind = host(self._kind)[:total].astype(np.int64)
         pair = host(self._pairs)[:total].astype(np.int64)
         order = np.lexsort((pair[:, 1], pair[:, 0], kind))
         return kind[order], pair[order], order
 
     def ccd(self, x0, x1, thickness: float = 0.0):
         """Hits of the vertices moving linearly from ``x0`` to ``x1`` ((V, 3) float64).
+
+        After :meth:`near` at ``x0`` with motion radii, a zero-thickness call whose every vertex
+        moves at most its radius tests only the pairs that near kept for it (same hits).
 
         Returns:
             (kind (K,) int64: 0 vertex-face, 1 edge-edge; pair (K, 2) int64 ``[vertex, face]`` /
@@ -332,38 +348,72 @@ class CandidateNarrowPhase:
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
         buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
+        r = self._reach
+        if r is not None and t == 0.0 and self._cover is r[0] and buffers is r[0][0] and np.array_equal(x0, r[1]):
+            step = np.subtract(x1, x0)
+            if (np.einsum("ij,ij->i", step, step) <= r[2]).all():
+                buffers = r[3]
+                self.reach_calls += 1
+        self.tested += buffers[1] + buffers[3]
         if self._float32:
             xa, xb = upload(self._x0_32, _as_float32(x0, "x0")), upload(self._x1_32, _as_float32(x1, "x1"))
             t = float(_as_float32(t, "thickness"))
 
-        def launch(kind, pairs, n):
-            self._launches.launch(("ccd", kind), self._kernels.pair_ccd_kernel, n,
-                                  [kind, pairs, xa, xb, self._faces, self._edges, t,
-                                   self._counter, self._pairs, self._time, self._source])
+        def launch(vf, n_vf, ee, n_ee):
+            self._launches.launch("ccd", self._kernels.pair_ccd_kernel, n_vf + n_ee,
+                                  [n_vf, vf, ee, xa, xb, self._faces, self._edges, t,
+                                   self._counter, self._pairs, self._kind, self._time, self._source])
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
         toi = host(self._time)[:n][order].astype(np.float64)
         return kind, pair, toi, host(self._source)[:n][order].astype(np.int64)
 
-    def near(self, x, max_distance: float):
+    def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
+
+        ``motion_radius`` ((V,) [m], optional): also keep, for later :meth:`ccd` calls from ``x``
+        at thickness 0 in which every vertex moves at most its radius, the candidates they can
+        hit (:func:`kernels.contact.pair_proximity_kernel`), so that those calls test only them.
+        A collision response's rounds move the vertices about as predicted; most candidates of
+        resting contact lie farther apart than that. Default narrow phase only (a variant's
+        tolerances may reach further) and only when the cover answers this call.
 
         Returns:
             (kind (K,), pair (K, 2), offset (K, 3): closest point of the first primitive minus
             the second's, weights (K, 4): the closest points' signed weights, side A positive,
             side B negative (:func:`kernels.contact.pair_weights`)).
         """
-        from kernels.contact import pair_proximity_kernel
-
+        self._reach = None
+        if motion_radius is not None:
+            motion_radius = np.asarray(motion_radius, dtype=np.float64)
+            if motion_radius.shape != (self._radius.shape[0],):
+                raise ValueError(f"motion_radius: expected shape ({self._radius.shape[0]},), got {motion_radius.shape}")
+            if not (motion_radius >= 0.0).all() or not np.isfinite(motion_radius).all():
+                raise ValueError("motion_radius: radii must be finite and >= 0")
         buffers, xa, _ = self._candidates(x, x, float(max_distance), end_moves=False)
+        radius = self._no_radius
+        if motion_radius is not None and self._kernels is _k and self._cover is not None \
+                and buffers is self._cover[0]:
+            radius = upload(self._radius, motion_radius)
+            self._reach_counter.zero_()
+            for kind in (0, 1):
+                n = buffers[2 * kind + 1]
+                if self._reach_pairs[kind].shape[0] < n:
+                    self._reach_pairs[kind] = wp.empty(max(n, 2 * self._reach_pairs[kind].shape[0], 64),
+                                                       dtype=wp.vec2i, device=self.device)
 
-        def launch(kind, pairs, n):
-            self._launches.launch(("near", kind), pair_proximity_kernel, n,
-                                  [kind, pairs, xa, self._faces, self._edges, float(max_distance),
-                                   self._counter, self._pairs, self._offset, self._weights])
+        def launch(vf, n_vf, ee, n_ee):
+            self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
+                                  [n_vf, vf, ee, xa, self._faces, self._edges, float(max_distance),
+                                   self._counter, self._pairs, self._kind, self._offset, self._weights,
+                                   radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
 
         kind, pair, order = self._collect(buffers, launch)
+        if radius is not self._no_radius:
+            counts = host(self._reach_counter)
+            self._reach = (self._cover, np.array(x, dtype=np.float64), np.square(motion_radius),
+                           (self._reach_pairs[0], int(counts[0]), self._reach_pairs[1], int(counts[1])))
         n = len(kind)
         return kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order]
 

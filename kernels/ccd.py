@@ -452,8 +452,9 @@ def pair_query(
 
 @wp.kernel
 def pair_ccd_kernel(
-    kind: int,
-    pairs: wp.array(dtype=wp.vec2i),
+    vf_count: int,
+    vf_pairs: wp.array(dtype=wp.vec2i),
+    ee_pairs: wp.array(dtype=wp.vec2i),
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
@@ -461,17 +462,27 @@ def pair_ccd_kernel(
     thickness: wp.float64,
     counter: wp.array(dtype=wp.int32),
     hit_pairs: wp.array(dtype=wp.vec2i),
+    hit_kind: wp.array(dtype=wp.int32),
     hit_time: wp.array(dtype=wp.float64),
     hit_source: wp.array(dtype=wp.int32),
 ):
-    """The narrow phase of :func:`ccd_kernel` straight on a broad phase's candidate pairs
-    (indices into ``faces`` / ``edges`` of the positions ``x0``, ``x1``): the hits are appended
-    through ``counter`` (the buffers hold at least as many rows as ``pairs``), so no per-pair
-    array leaves the device."""
+    """The narrow phase of :func:`ccd_kernel` straight on a broad phase's candidate pairs: the
+    first ``vf_count`` threads take the vertex-face pairs, the rest the edge-edge ones (indices
+    into ``faces`` / ``edges`` of the positions ``x0``, ``x1``), one launch for both kinds. The
+    hits are appended through ``counter`` with their kind (the buffers hold at least as many rows
+    as there are pairs), so no per-pair array leaves the device."""
     i = wp.tid()
-    r = ccd_query(kind, pair_query(kind, pairs[i], x0, x1, faces, edges), thickness)
+    kind = int(VERTEX_FACE)
+    pair = wp.vec2i()
+    if i < vf_count:
+        pair = vf_pairs[i]
+    else:
+        kind = int(EDGE_EDGE)
+        pair = ee_pairs[i - vf_count]
+    r = ccd_query(kind, pair_query(kind, pair, x0, x1, faces, edges), thickness)
     if r[0] != wp.float64(0.0):
         slot = wp.atomic_add(counter, 0, 1)
-        hit_pairs[slot] = pairs[i]
+        hit_pairs[slot] = pair
+        hit_kind[slot] = wp.int32(kind)
         hit_time[slot] = r[1]
         hit_source[slot] = wp.int32(r[2])

@@ -18,41 +18,80 @@ from kernels.roots import cubic_roots
 
 @wp.kernel
 def pair_proximity_kernel(
-    kind: int,
-    pairs: wp.array(dtype=wp.vec2i),
+    vf_count: int,
+    vf_pairs: wp.array(dtype=wp.vec2i),
+    ee_pairs: wp.array(dtype=wp.vec2i),
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     edges: wp.array(dtype=wp.vec2i),
     max_distance: wp.float64,
     counter: wp.array(dtype=wp.int32),
     near_pairs: wp.array(dtype=wp.vec2i),
+    near_kind: wp.array(dtype=wp.int32),
     near_offset: wp.array(dtype=wp.vec3d),
     near_weights: wp.array(dtype=wp.vec4d),
+    motion_radius: wp.array(dtype=wp.float64),
+    reach_counter: wp.array(dtype=wp.int32),
+    reach_vf: wp.array(dtype=wp.vec2i),
+    reach_ee: wp.array(dtype=wp.vec2i),
 ):
-    """Candidate pairs of a broad phase (:func:`kernels.ccd.pair_vertex_indices`) whose
+    """Candidate pairs of a broad phase (:func:`kernels.ccd.pair_vertex_indices`; the first
+    ``vf_count`` threads take the vertex-face pairs, the rest the edge-edge ones) whose
     primitives at positions ``x`` are at most ``max_distance`` apart, appended through
-    ``counter`` with their offsets (the first primitive's exact closest point minus the
-    second's, see the module docstring) and the closest points' signed weights
-    (:func:`pair_weights`): the proximity test without a per-pair array leaving the device."""
+    ``counter`` with their kind, their offsets (the first primitive's exact closest point minus
+    the second's, see the module docstring) and the closest points' signed weights
+    (:func:`pair_weights`): the proximity test without a per-pair array leaving the device.
+
+    With a non-empty ``motion_radius`` (per vertex [m]) it also appends, through
+    ``reach_counter[kind]`` into ``reach_vf`` / ``reach_ee``, the pairs that a zero-thickness CCD of a motion
+    from ``x`` can hit when every vertex moves at most its radius: a point of a primitive is a
+    convex combination of its vertices, so it moves at most their largest radius, and the CCD
+    reports no hit of a pair farther apart at the start than its points can move relative to
+    each other (:func:`kernels.ccd.ccd_query`). The bound is widened by the rounding of both
+    distances and of the CCD's tolerance (:func:`kernels.ccd.filter_rounding`)."""
     i = wp.tid()
-    q = pair_vertex_indices(kind, pairs[i], faces, edges)
+    kind = int(0)
+    pair = wp.vec2i()
+    if i < vf_count:
+        pair = vf_pairs[i]
+    else:
+        kind = int(1)
+        pair = ee_pairs[i - vf_count]
+    q = pair_vertex_indices(kind, pair, faces, edges)
     y0 = x[q[0]]
     # the cheap plane / line bound first (most candidates are farther apart); the threshold adds
     # the bound's rounding and the exact distance's (kernels.ccd.filter_rounding), so it rejects
     # only pairs that the exact test rejects too
     extent = wp.max(max_abs_vec3(x[q[1]] - y0), wp.max(max_abs_vec3(x[q[2]] - y0), max_abs_vec3(x[q[3]] - y0)))
-    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], max_distance + filter_rounding(extent, y0)):
+    reach = wp.float64(-1.0)
+    if motion_radius.shape[0] > 0:
+        reach_a = motion_radius[q[0]]
+        reach_b = wp.max(motion_radius[q[2]], motion_radius[q[3]])
+        if kind == 0:
+            reach_b = wp.max(reach_b, motion_radius[q[1]])
+        else:
+            reach_a = wp.max(reach_a, motion_radius[q[1]])
+        reach = reach_a + reach_b
+        reach = reach + filter_rounding(extent + wp.float64(4.0) * reach, y0)
+    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], wp.max(max_distance, reach) + filter_rounding(extent, y0)):
         return
     off = wp.vec3d()
     if kind == 0:
         off = point_triangle_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
     else:
         off = segment_segment_offset(x[q[0]], x[q[1]], x[q[2]], x[q[3]])
-    if wp.dot(off, off) <= max_distance * max_distance:
+    distance2 = wp.dot(off, off)
+    if distance2 <= max_distance * max_distance:
         slot = wp.atomic_add(counter, 0, 1)
-        near_pairs[slot] = pairs[i]
+        near_pairs[slot] = pair
+        near_kind[slot] = wp.int32(kind)
         near_offset[slot] = off
         near_weights[slot] = pair_weights(kind, x[q[0]], x[q[1]], x[q[2]], x[q[3]])
+    if reach >= wp.float64(0.0) and distance2 <= reach * reach:
+        if kind == 0:
+            reach_vf[wp.atomic_add(reach_counter, 0, 1)] = pair
+        else:
+            reach_ee[wp.atomic_add(reach_counter, 1, 1)] = pair
 
 
 @wp.func

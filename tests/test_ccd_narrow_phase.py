@@ -470,6 +470,92 @@ def test_candidate_cover_answers_covered_calls_and_requeries_the_rest():
     assert narrow.queries == before + 1
 
 
+def test_ccd_after_near_with_motion_radii_tests_only_reachable_pairs_with_the_same_hits():
+    """near(x0, d, motion_radius) keeps the candidates that a CCD from x0 can hit while every
+    vertex moves at most its radius; such a CCD tests only those (far fewer) and finds exactly
+    the hits of a fresh narrow phase and of mesh_ccd. A vertex moving past its radius, another
+    start or a thickness falls back to every candidate, with the same hits."""
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+
+    x0, x1, faces = _crumpled_sheets(6)
+    x1 = x0 + 0.3 * (x1 - x0)
+    edges = mesh_edges(faces)
+    narrow = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    fresh = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    margin, slack = 0.004, 0.001
+    narrow.cover(x0, x1, margin)
+    radius = np.linalg.norm(x1 - x0, axis=1) + slack
+    near = narrow.near(x0, 0.001, radius)
+    for g, w in zip(near, fresh.near(x0, 0.001)):  # the proximity answer is unchanged
+        np.testing.assert_array_equal(g, w)
+    rng = np.random.default_rng(11)
+    candidates = narrow.covered_candidates()
+
+    def check(y1, start=x0, thickness=0.0):
+        got = narrow.ccd(start, y1, thickness)
+        for g, w in zip(got, fresh.ccd(start, y1, thickness)):
+            np.testing.assert_array_equal(g, w)
+        return got
+
+    total = 0
+    for k in range(4):  # ends anywhere within the radii (the predicted end moved by < slack)
+        u = rng.normal(size=x0.shape)
+        u *= (0.99 * slack * rng.uniform(size=(len(x0), 1))) / np.linalg.norm(u, axis=1, keepdims=True)
+        y1 = x1 + u
+        calls, tested = narrow.reach_calls, narrow.tested
+        got = check(y1)
+        assert narrow.reach_calls == calls + 1
+        assert narrow.tested - tested < candidates / 2
+        ref = mesh_ccd(x0, y1, faces, edges)
+        assert len(got[0]) == int(ref.vf_hit.sum() + ref.ee_hit.sum())
+        total += len(got[0])
+    assert total > 0
+    # one vertex past its radius, another start, a thickness: every candidate
+    far = x1.copy()
+    step = x1[3] - x0[3]  # continued just past the radius: still inside the cover
+    far[3] = x0[3] + step * (1.001 * radius[3] / np.linalg.norm(step))
+    moved = x0.copy()
+    moved[5, 2] += 1e-9
+    for y1, start, thickness in ((far, x0, 0.0), (x1, moved, 0.0), (x1, x0, 1e-4)):
+        calls, tested = narrow.reach_calls, narrow.tested
+        check(y1, start, thickness)
+        assert narrow.reach_calls == calls
+        assert narrow.tested - tested == candidates
+    with pytest.raises(ValueError, match="motion_radius"):
+        narrow.near(x0, 0.001, radius[:-1])
+    bad = radius.copy()
+    bad[2] = np.nan
+    with pytest.raises(ValueError, match="motion_radius"):
+        narrow.near(x0, 0.001, bad)
+
+
+def test_reachable_pairs_keep_a_contact_at_the_end_of_both_radii():
+    """The kept pairs' bound is tight: a vertex and a triangle 2 r (1 - 1e-9) apart, each moving
+    straight at the other by its radius r, touch at the very end of the step, and the CCD that
+    tests only the kept pairs reports that hit; 2 r (1 + 1e-6) apart they are not kept (and
+    do not touch)."""
+    from collision.broad_phase import BroadPhase
+    from collision.ccd import CandidateNarrowPhase
+
+    faces = np.array([[1, 2, 3]])
+    edges = np.array([[1, 2], [2, 3], [1, 3]])
+    r = 0.002
+    for gap, hit in ((2 * r * (1 - 1e-9), True), (2 * r * (1 + 1e-6), False)):
+        tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) * 0.1
+        x0 = np.vstack([[0.02, 0.02, gap], tri])
+        x1 = x0 + np.array([[0.0, 0.0, -r]] + [[0.0, 0.0, r]] * 3)
+        narrow = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=4))
+        narrow.cover(x0, x1, 0.01)
+        narrow.near(x0, 0.001, np.full(4, r))
+        kind, pair, toi, _ = narrow.ccd(x0, x1)
+        assert narrow.reach_calls == 1
+        assert narrow.tested == (1 if hit else 0)
+        assert len(kind) == (1 if hit else 0)
+        if hit:
+            assert abs(toi[0] - 1.0) < 1e-6
+
+
 def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh_queries():
     """cover(..., slack) keeps the current cover while both ends of every vertex's new motion lie
     within the slack of the box of its covered motion (the next substep of resting contact):
