@@ -585,6 +585,13 @@ class ImpulseCollisionHandler:
     def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
         idx = np.zeros((len(pair), 4), dtype=np.int64)
+        k = int(np.count_nonzero(kind == 0))
+        if not kind[:k].any():  # sorted by kind (the narrow phase's order): slices, no masks
+            idx[:k, 0] = pair[:k, 0]
+            idx[:k, 1:] = self.faces[pair[:k, 1]]
+            idx[k:, :2] = self.edges[pair[k:, 0]]
+            idx[k:, 2:] = self.edges[pair[k:, 1]]
+            return idx
         vf = kind == 0
         idx[vf, 0] = pair[vf, 0]
         idx[vf, 1:] = self.faces[pair[vf, 1]]
@@ -780,15 +787,23 @@ class ImpulseCollisionHandler:
         t_p = np.full(n_p, np.inf)
         t_b = np.full(n_b, np.inf)
         if len(cs):
-            toi = np.repeat(cs.toi, 4)
-            t = self.vertex_type[cs.idx].ravel()
-            o = self.vertex_owner[cs.idx].ravel()
+            idx = cs.idx.ravel()
+            t = self.vertex_type[idx]
+            o = self.vertex_owner[idx]
+            at_start = not cs.toi.any()  # proximity contacts only (resting contact): all at 0
+            toi = None if at_start else np.repeat(cs.toi, 4)
             if n_p:
                 p = (t == _PARTICLE) & (cs.w.ravel() != 0)
-                np.minimum.at(t_p, o[p], toi[p])
+                if at_start:
+                    t_p[o[p]] = 0.0
+                else:
+                    np.minimum.at(t_p, o[p], toi[p])
             if n_b:
                 b = t == _BODY
-                np.minimum.at(t_b, o[b], toi[b])
+                if at_start:
+                    t_b[o[b]] = 0.0
+                else:
+                    np.minimum.at(t_b, o[b], toi[b])
         return t_p, t_b
 
     # ------------------------------------------------------------------------------------------
