@@ -216,6 +216,7 @@ class CandidateNarrowPhase:
         self._source = wp.empty(0, dtype=wp.int32, device=dev)
         self._offset = wp.empty(0, dtype=wp.vec3d, device=dev)
         self._weights = wp.empty(0, dtype=wp.vec4d, device=dev)
+        self._vertices = wp.empty(0, dtype=wp.vec4i, device=dev)
         n = broad_phase.num_vertices
         self._x0 = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._x1 = wp.empty(n, dtype=wp.vec3d, device=dev)
@@ -314,6 +315,7 @@ class CandidateNarrowPhase:
             self._source = wp.empty(n, dtype=wp.int32, device=dev)
             self._offset = wp.empty(n, dtype=wp.vec3d, device=dev)
             self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
+            self._vertices = wp.empty(n, dtype=wp.vec4i, device=dev)
 
     def _collect(self, buffers, launch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Runs ``launch(vf, n_vf, ee, n_ee)`` once for both kinds' candidates (it appends the
@@ -382,7 +384,9 @@ class CandidateNarrowPhase:
         Returns:
             (kind (K,), pair (K, 2), offset (K, 3): closest point of the first primitive minus
             the second's, weights (K, 4): the closest points' signed weights, side A positive,
-            side B negative (:func:`kernels.contact.pair_weights`)).
+            side B negative (:func:`kernels.contact.pair_weights`), vertices (K, 4) int64: the
+            pairs' vertex indices, vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0,
+            b1)``).
         """
         self._reach = None
         if motion_radius is not None:
@@ -407,7 +411,7 @@ class CandidateNarrowPhase:
             self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
                                   [n_vf, vf, ee, xa, self._faces, self._edges, float(max_distance),
                                    self._counter, self._pairs, self._kind, self._offset, self._weights,
-                                   radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
+                                   self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
 
         kind, pair, order = self._collect(buffers, launch)
         if radius is not self._no_radius:
@@ -415,7 +419,8 @@ class CandidateNarrowPhase:
             self._reach = (self._cover, np.array(x, dtype=np.float64), np.square(motion_radius),
                            (self._reach_pairs[0], int(counts[0]), self._reach_pairs[1], int(counts[1])))
         n = len(kind)
-        return kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order]
+        return (kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order],
+                host(self._vertices)[:n][order].astype(np.int64))
 
 
 def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0, *,

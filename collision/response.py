@@ -550,12 +550,12 @@ class ImpulseCollisionHandler:
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
             step = x1_pred[:n] - x0[:n]
             radius = np.sqrt(np.einsum("ij,ij->i", step, step)) + CCD_REACH_SLACK * delta
-        kind, pair, off, _ = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
+        kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
         near = row_norms(off) < delta
-        kind, pair = kind[near], pair[near]
+        kind, pair, idx = kind[near], pair[near], idx[near]
         plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(x0, delta)
         return (np.concatenate([kind, plane_kind]), np.concatenate([pair, plane_pair]),
-                np.concatenate([self._pair_vertices(kind, pair), plane_idx]))
+                np.concatenate([idx, plane_idx]))
 
     def _start_geometry(self, kind, pair, idx, x0: wp.array, lever: wp.array, state_pred: State, h: float):
         """Weights (C, 4), unit normals (C, 3) and target normal velocities (C,) [m/s] of the

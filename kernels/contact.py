@@ -30,6 +30,7 @@ def pair_proximity_kernel(
     near_kind: wp.array(dtype=wp.int32),
     near_offset: wp.array(dtype=wp.vec3d),
     near_weights: wp.array(dtype=wp.vec4d),
+    near_vertices: wp.array(dtype=wp.vec4i),
     motion_radius: wp.array(dtype=wp.float64),
     reach_counter: wp.array(dtype=wp.int32),
     reach_vf: wp.array(dtype=wp.vec2i),
@@ -39,8 +40,9 @@ def pair_proximity_kernel(
     ``vf_count`` threads take the vertex-face pairs, the rest the edge-edge ones) whose
     primitives at positions ``x`` are at most ``max_distance`` apart, appended through
     ``counter`` with their kind, their offsets (the first primitive's exact closest point minus
-    the second's, see the module docstring) and the closest points' signed weights
-    (:func:`pair_weights`): the proximity test without a per-pair array leaving the device.
+    the second's, see the module docstring), the closest points' signed weights
+    (:func:`pair_weights`) and their vertex indices: the proximity test without a per-pair array
+    leaving the device.
 
     With a non-empty ``motion_radius`` (per vertex [m]) it also appends, through
     ``reach_counter[kind]`` into ``reach_vf`` / ``reach_ee``, the pairs that a zero-thickness CCD of a motion
@@ -87,6 +89,7 @@ def pair_proximity_kernel(
         near_kind[slot] = wp.int32(kind)
         near_offset[slot] = off
         near_weights[slot] = pair_weights(kind, x[q[0]], x[q[1]], x[q[2]], x[q[3]])
+        near_vertices[slot] = q
     if reach >= wp.float64(0.0) and distance2 <= reach * reach:
         if kind == 0:
             reach_vf[wp.atomic_add(reach_counter, 0, 1)] = pair

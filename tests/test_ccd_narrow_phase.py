@@ -400,7 +400,7 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     assert set(np.unique(source)) <= {0, 1, 2, 3, 4}
 
     limit = 0.012
-    kind, pair, off, weights = narrow.near(x0, limit)
+    kind, pair, off, weights, vertices = narrow.near(x0, limit)
     got = {(int(k), int(a), int(b)) for k, (a, b) in zip(kind, pair)}
     dist = np.linalg.norm(off, axis=1)
     want, border = set(), set()
@@ -428,6 +428,7 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     # positions give the offset
     idx = np.where((kind == 0)[:, None], np.column_stack([pair[:, 0], faces[np.where(kind == 0, pair[:, 1], 0)]]),
                    np.column_stack([edges[pair[:, 0]], edges[pair[:, 1]]]))
+    np.testing.assert_array_equal(vertices, idx)  # the pairs' vertex indices, as the mesh numbers them
     split = np.where(kind == 0, 1, 2)[:, None] > np.arange(4)
     np.testing.assert_allclose(np.where(split, weights, 0).sum(1), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.where(split, 0, weights).sum(1), -1.0, atol=1e-12)
