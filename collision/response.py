@@ -438,6 +438,10 @@ class ImpulseCollisionHandler:
         self._plane_threshold = np.concatenate([np.full((len(movable_particles), 1), 1.0 - PLANE_ROUNDING_SLACK),
                                                 np.ones((self.n_shape, 1))])  # x delta, per vertex
         self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
+        ids = self._plane_vertex_ids
+        # the rows of those vertices: a slice when they are consecutive (no gather per call)
+        self._plane_rows_of = slice(int(ids[0]), int(ids[-1]) + 1) \
+            if len(ids) and np.array_equal(ids, np.arange(ids[0], ids[-1] + 1)) else ids
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
@@ -620,7 +624,7 @@ class ImpulseCollisionHandler:
         if not (len(self._plane_vertex_ids) and len(self.planes)):
             return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
         verts = self._plane_vertex_ids
-        dist = x0[verts] @ self._plane_normals_t - self._plane_offsets
+        dist = x0[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
         # the integrator's plane stage leaves particles at exactly delta, which this product
         # may round to a hair below: such a particle is no contact (without the slack a resting
         # cloth joined the solve on every substep, all of it in one replayed system)
@@ -655,8 +659,8 @@ class ImpulseCollisionHandler:
             sources.append(source)
         if len(self._plane_vertex_ids) and len(self.planes):
             verts = self._plane_vertex_ids
-            d0 = x0[verts] @ self._plane_normals_t - self._plane_offsets
-            d1 = x1[verts] @ self._plane_normals_t - self._plane_offsets
+            d0 = x0[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
+            d1 = x1[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
             v, k = np.nonzero((d1 < 0.0) & (d1 < d0))
             if len(v):
                 kind, pair, idx = self._plane_rows(verts[v], k)
