@@ -142,11 +142,11 @@ class RecordedLaunches:
                 or getattr(cmd.hooks, "forward", None) is None:
             return None
         names = [arg.label for arg in cmd.kernel.adj.args]
-        fields = [(name, type(cmd.params[1 + i])) for i, name in enumerate(names)]
-        struct = type("RecordedArgs", (ctypes.Structure,), {"_fields_": fields})()
+        types = [type(cmd.params[1 + i]) for i in range(len(names))]
+        struct = type("RecordedArgs", (ctypes.Structure,), {"_fields_": list(zip(names, types))})()
         for i, name in enumerate(names):
             setattr(struct, name, cmd.params[1 + i])
-        return struct, names
+        return struct, names, types
 
     def launch(self, key, kernel, dim: int, args: list) -> None:
         entry = self._cmds.get(key)
@@ -160,9 +160,13 @@ class RecordedLaunches:
         for i, (new, old) in enumerate(zip(args, last)):
             if new is not old and (isinstance(new, wp.array) or new != old):
                 cmd.set_param_at_index(i, new)
-                last[i] = new
                 if cpu is not None:
-                    setattr(cpu[0], cpu[1][i], cmd.params[1 + i])
+                    packed = cmd.params[1 + i]
+                    if type(packed) is cpu[2][i]:
+                        setattr(cpu[0], cpu[1][i], packed)
+                    else:  # packed as another ctypes class (a value argument given another way)
+                        cpu = entry[3] = self._cpu_arguments(cmd)
+                last[i] = new
         if cpu is None or _cpu_capture_active(cmd.device):
             cmd.launch()
         else:

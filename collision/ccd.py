@@ -162,8 +162,8 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
 class CandidateNarrowPhase:
     """The narrow phase (and the proximity test) of a mesh's broad-phase candidate pairs, run
     where the broad phase left them (:meth:`collision.broad_phase.BroadPhase.query_device`): one
-    kernel per pair kind reads the pairs and the positions on the device and appends only the
-    hits, so the per-pair arrays never cross to the host. The results equal
+    kernel launch over both pair kinds reads the pairs and the positions on the device and
+    appends only the hits (with their kind), so the per-pair arrays never cross to the host. The results equal
     :func:`narrow_phase` on the same pairs, in the sorted order of
     :meth:`~collision.broad_phase.BroadPhase.query`.
 

@@ -554,6 +554,8 @@ class ImpulseCollisionHandler:
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
             step = x1_pred[:n] - x0[:n]
             radius = np.sqrt(np.einsum("ij,ij->i", step, step)) + CCD_REACH_SLACK * delta
+            if not np.isfinite(radius).all():  # a step past 1e154 m overflows: test every candidate
+                radius = None
         kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
         near = row_norms(off) < delta
         kind, pair, idx = kind[near], pair[near], idx[near]

@@ -72,3 +72,20 @@ def test_replayed_launch_is_recorded_by_a_cpu_graph_capture():
     out.zero_()
     wp.capture_launch(capture.graph)
     np.testing.assert_array_equal(out.numpy(), np.concatenate([_expected(3.0, 1, x, y, 4), np.zeros(4)]))
+
+
+@wp.kernel
+def _vector_sum(v: wp.vec3d, out: wp.array(dtype=wp.float64)):
+    out[0] = v[0] + v[1] + v[2]
+
+
+def test_replayed_launch_takes_a_value_argument_packed_as_another_class():
+    """A vector value given first as a tuple, then as an instance of another vector class of the
+    same layout (packed as another ctypes class): the replay rebuilds its argument structure
+    instead of failing, and computes what wp.launch does."""
+    other = wp.types.vector(3, wp.float64)
+    out = wp.zeros(1, dtype=wp.float64)
+    launches = RecordedLaunches("cpu")
+    for value, want in (((1.0, 2.0, 3.0), 6.0), (other(1.0, 1.0, 1.0), 3.0), ((2.0, 2.0, 2.0), 6.0)):
+        launches.launch("sum", _vector_sum, 1, [value, out])
+        assert out.numpy()[0] == want
