@@ -344,7 +344,8 @@ class CandidateNarrowPhase:
         Returns:
             (kind (K,) int64: 0 vertex-face, 1 edge-edge; pair (K, 2) int64 ``[vertex, face]`` /
             ``[edge_a, edge_b]``; time of impact (K,) as a fraction of the step; source (K,)
-            int64, as :func:`narrow_phase`'s), hits only.
+            int64, as :func:`narrow_phase`'s; vertices (K, 4) int64: the pairs' vertex indices,
+            vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0, b1)``), hits only.
         """
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
@@ -364,12 +365,14 @@ class CandidateNarrowPhase:
         def launch(vf, n_vf, ee, n_ee):
             self._launches.launch("ccd", self._kernels.pair_ccd_kernel, n_vf + n_ee,
                                   [n_vf, vf, ee, xa, xb, self._faces, self._edges, t,
-                                   self._counter, self._pairs, self._kind, self._time, self._source])
+                                   self._counter, self._pairs, self._kind, self._time, self._source,
+                                   self._vertices])
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
         toi = host(self._time)[:n][order].astype(np.float64)
-        return kind, pair, toi, host(self._source)[:n][order].astype(np.int64)
+        return (kind, pair, toi, host(self._source)[:n][order].astype(np.int64),
+                host(self._vertices)[:n][order].astype(np.int64))
 
     def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).

@@ -588,24 +588,6 @@ class ImpulseCollisionHandler:
             float(self.max_derivative), 0, *out])
         return host(out[1])[:c].copy(), host(out[2])[:c].copy(), host(out[3])[:c].copy()
 
-    def _pair_vertices(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
-        """(C, 4) vertex indices of vertex-face (kind 0: [vertex, face]) / edge-edge pairs."""
-        idx = np.zeros((len(pair), 4), dtype=np.int64)
-        k = int(np.count_nonzero(kind == 0))
-        if not kind[:k].any():  # sorted by kind (the narrow phase's order): slices, no masks
-            idx[:k, 0] = pair[:k, 0]
-            idx[:k, 1:] = self.faces[pair[:k, 1]]
-            idx[k:, :2] = self.edges[pair[k:, 0]]
-            idx[k:, 2:] = self.edges[pair[k:, 1]]
-            return idx
-        vf = kind == 0
-        idx[vf, 0] = pair[vf, 0]
-        idx[vf, 1:] = self.faces[pair[vf, 1]]
-        ee = ~vf
-        idx[ee, :2] = self.edges[pair[ee, 0]]
-        idx[ee, 2:] = self.edges[pair[ee, 1]]
-        return idx
-
     def _weights(self, y: np.ndarray, kind: np.ndarray) -> np.ndarray:
         """Signed weights (C, 4) of the exact closest points of the pairs (``kind`` (C,): 0
         vertex-face, 1 edge-edge, 2 vertex-plane) at positions ``y`` (C, 4, 3): side A positive
@@ -652,11 +634,11 @@ class ImpulseCollisionHandler:
         """
         n = self.n_vertices
         kinds, pairs, idxs, tois, sources = [], [], [], [], []
-        kind, pair, toi, source = self._narrow.ccd(x0[:n], x1[:n], 0.0)
+        kind, pair, toi, source, idx = self._narrow.ccd(x0[:n], x1[:n], 0.0)
         if len(kind):
             kinds.append(kind)
             pairs.append(pair)
-            idxs.append(self._pair_vertices(kind, pair))
+            idxs.append(idx)
             tois.append(toi)
             sources.append(source)
         if len(self._plane_vertex_ids) and len(self.planes):

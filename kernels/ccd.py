@@ -432,17 +432,9 @@ def pair_vertex_indices(
 
 
 @wp.func
-def pair_query(
-    kind: int,
-    pair: wp.vec2i,
-    x0: wp.array(dtype=wp.vec3d),
-    x1: wp.array(dtype=wp.vec3d),
-    faces: wp.array(dtype=wp.vec3i),
-    edges: wp.array(dtype=wp.vec2i),
-) -> mat83d:
-    """The (8, 3) query of a candidate pair (:func:`pair_vertex_indices`) moving from positions
-    ``x0`` at the start to ``x1`` at the end."""
-    q = pair_vertex_indices(kind, pair, faces, edges)
+def pair_query(q: wp.vec4i, x0: wp.array(dtype=wp.vec3d), x1: wp.array(dtype=wp.vec3d)) -> mat83d:
+    """The (8, 3) query of a candidate pair's vertices ``q`` (:func:`pair_vertex_indices`)
+    moving from positions ``x0`` at the start to ``x1`` at the end."""
     m = mat83d()
     for k in range(4):
         m[k] = x0[q[k]]
@@ -465,12 +457,13 @@ def pair_ccd_kernel(
     hit_kind: wp.array(dtype=wp.int32),
     hit_time: wp.array(dtype=wp.float64),
     hit_source: wp.array(dtype=wp.int32),
+    hit_vertices: wp.array(dtype=wp.vec4i),
 ):
     """The narrow phase of :func:`ccd_kernel` straight on a broad phase's candidate pairs: the
     first ``vf_count`` threads take the vertex-face pairs, the rest the edge-edge ones (indices
     into ``faces`` / ``edges`` of the positions ``x0``, ``x1``), one launch for both kinds. The
-    hits are appended through ``counter`` with their kind (the buffers hold at least as many rows
-    as there are pairs), so no per-pair array leaves the device."""
+    hits are appended through ``counter`` with their kind and vertex indices (the buffers hold at
+    least as many rows as there are pairs), so no per-pair array leaves the device."""
     i = wp.tid()
     kind = int(VERTEX_FACE)
     pair = wp.vec2i()
@@ -479,10 +472,12 @@ def pair_ccd_kernel(
     else:
         kind = int(EDGE_EDGE)
         pair = ee_pairs[i - vf_count]
-    r = ccd_query(kind, pair_query(kind, pair, x0, x1, faces, edges), thickness)
+    q = pair_vertex_indices(kind, pair, faces, edges)
+    r = ccd_query(kind, pair_query(q, x0, x1), thickness)
     if r[0] != wp.float64(0.0):
         slot = wp.atomic_add(counter, 0, 1)
         hit_pairs[slot] = pair
         hit_kind[slot] = wp.int32(kind)
         hit_time[slot] = r[1]
         hit_source[slot] = wp.int32(r[2])
+        hit_vertices[slot] = q

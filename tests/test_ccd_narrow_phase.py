@@ -388,7 +388,7 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     edges = mesh_edges(faces)
     bp = BroadPhase(faces, edges, num_vertices=len(x0))
     narrow = CandidateNarrowPhase(bp)
-    kind, pair, toi, source = narrow.ccd(x0, x1)
+    kind, pair, toi, source, vertices = narrow.ccd(x0, x1)
     ref = mesh_ccd(x0, x1, faces, edges)
     want_pair = np.vstack([ref.vf[ref.vf_hit], ref.ee[ref.ee_hit]])
     want_kind = np.r_[np.zeros(ref.vf_hit.sum(), int), np.ones(ref.ee_hit.sum(), int)]
@@ -398,6 +398,10 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     np.testing.assert_array_equal(pair, want_pair)
     np.testing.assert_array_equal(toi, want_toi)
     assert set(np.unique(source)) <= {0, 1, 2, 3, 4}
+    want_vertices = np.where((kind == 0)[:, None],
+                             np.column_stack([pair[:, 0], faces[np.where(kind == 0, pair[:, 1], 0)]]),
+                             np.column_stack([edges[pair[:, 0]], edges[np.where(kind == 1, pair[:, 1], 0)]]))
+    np.testing.assert_array_equal(vertices, want_vertices)
 
     limit = 0.012
     kind, pair, off, weights, vertices = narrow.near(x0, limit)
@@ -549,7 +553,7 @@ def test_reachable_pairs_keep_a_contact_at_the_end_of_both_radii():
         narrow = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=4))
         narrow.cover(x0, x1, 0.01)
         narrow.near(x0, 0.001, np.full(4, r))
-        kind, pair, toi, _ = narrow.ccd(x0, x1)
+        kind, pair, toi, _, _ = narrow.ccd(x0, x1)
         assert narrow.reach_calls == 1
         assert narrow.tested == (1 if hit else 0)
         assert len(kind) == (1 if hit else 0)
@@ -696,7 +700,7 @@ def test_candidate_narrow_phase_knobs_give_the_stacked_narrow_phase_of_the_same_
     edges = mesh_edges(faces)
     bp = BroadPhase(faces, edges, num_vertices=len(x0))
     vf, ee = bp.query(x0, x1, 0.0)
-    kind, pair, toi, source = CandidateNarrowPhase(bp, **options).ccd(x0, x1)
+    kind, pair, toi, source, _ = CandidateNarrowPhase(bp, **options).ccd(x0, x1)
     want_kind, want_pair, want_toi = [], [], []
     for k, pairs in ((0, vf), (1, ee)):
         idx = (np.column_stack([pairs[:, 0], faces[pairs[:, 1]]]) if k == 0
