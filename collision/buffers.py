@@ -135,12 +135,17 @@ class RecordedLaunches:
         self._cmds: dict = {}
 
     @staticmethod
-    def _cpu_arguments(cmd):
-        """(argument structure, field names) of a CPU command, or None where its own launch()
-        must run (launch in blocks, or a Warp without the hooks this relies on)."""
+    def _cpu_arguments(cmd, last=None, stale=()):
+        """(argument structure, field names, packed types) of a CPU command, or None where its
+        own launch() must run (launch in blocks, or a Warp without the hooks this relies on).
+        ``stale``: indices of array arguments ``last`` that the command's own copy lacks."""
         if not cmd.device.is_cpu or cmd.block_dim > 1 or cmd.adjoint or getattr(cmd, "hooks", None) is None \
                 or getattr(cmd.hooks, "forward", None) is None:
             return None
+        for i in stale:
+            cmd.set_param_at_index(i, last[i])
+        if stale:
+            stale.clear()
         names = [arg.label for arg in cmd.kernel.adj.args]
         types = [type(cmd.params[1 + i]) for i in range(len(names))]
         struct = type("RecordedArgs", (ctypes.Structure,), {"_fields_": list(zip(names, types))})()
@@ -152,25 +157,45 @@ class RecordedLaunches:
         entry = self._cmds.get(key)
         if entry is None:  # recorded, not run (record_cmd)
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
-            self._cmds[key] = entry = [cmd, list(args), dim, self._cpu_arguments(cmd)]
-        cmd, last, last_dim, cpu = entry
+            self._cmds[key] = entry = [cmd, list(args), dim, self._cpu_arguments(cmd), set()]
+        cmd, last, last_dim, cpu, stale = entry
         if dim != last_dim:
             cmd.set_dim(dim)
             entry[2] = dim
         for i, (new, old) in enumerate(zip(args, last)):
             if new is not old and (isinstance(new, wp.array) or new != old):
-                cmd.set_param_at_index(i, new)
-                if cpu is not None:
-                    packed = cmd.params[1 + i]
-                    if type(packed) is cpu[2][i]:
-                        setattr(cpu[0], cpu[1][i], packed)
-                    else:  # packed as another ctypes class (a value argument given another way)
-                        cpu = entry[3] = self._cpu_arguments(cmd)
+                if cpu is not None and _same_kind_of_array(new, old):
+                    # another array like the last one (the states a stepping loop alternates):
+                    # its descriptor goes into the structure; the command's own copy of the
+                    # argument is brought up to date only if its launch() runs (Warp's checks
+                    # of an array argument cost microseconds, and the last array passed them)
+                    setattr(cpu[0], cpu[1][i], new.__ctype__())
+                    stale.add(i)
+                else:
+                    cmd.set_param_at_index(i, new)
+                    stale.discard(i)
+                    if cpu is not None:
+                        packed = cmd.params[1 + i]
+                        if type(packed) is cpu[2][i]:
+                            setattr(cpu[0], cpu[1][i], packed)
+                        else:  # packed as another ctypes class (a value argument given another way)
+                            cpu = entry[3] = self._cpu_arguments(cmd, last, stale)
                 last[i] = new
         if cpu is None or _cpu_capture_active(cmd.device):
+            for i in stale:
+                cmd.set_param_at_index(i, last[i])
+            stale.clear()
             cmd.launch()
         else:
             cmd.hooks.forward(ctypes.byref(cmd.params[0]), ctypes.byref(cpu[0]))
+
+
+def _same_kind_of_array(new, old) -> bool:
+    """Whether ``new`` is a plain Warp array of the same dtype, dimensions and device as
+    ``old`` (which a launch accepted): Warp would accept it for the same argument."""
+    return type(new) is wp.array and type(old) is wp.array and new.dtype is old.dtype \
+        and new.ndim == old.ndim and new.device is old.device \
+        and wp.config.launch_array_access_mode == wp.config.LaunchArrayAccessMode.RELAXED
 
 
 def _cpu_capture_active(device) -> bool:

@@ -3,6 +3,7 @@ the same arguments, whatever changed since the key's last launch, and a CPU grap
 records it."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 from collision.buffers import RecordedLaunches
@@ -89,3 +90,28 @@ def test_replayed_launch_takes_a_value_argument_packed_as_another_class():
     for value, want in (((1.0, 2.0, 3.0), 6.0), (other(1.0, 1.0, 1.0), 3.0), ((2.0, 2.0, 2.0), 6.0)):
         launches.launch("sum", _vector_sum, 1, [value, out])
         assert out.numpy()[0] == want
+
+
+def test_alternating_arrays_stay_right_on_both_launch_paths():
+    """Input arrays alternating between launches (as a stepping loop's states do) take the
+    cheap path (the descriptor only, the command's copy updated lazily); a CPU graph capture in
+    between launches the latest arrays, as does the cheap path after it; an array of another
+    dtype is still refused by Warp's own checks."""
+    rng = np.random.default_rng(1)
+    xs = [wp.array(rng.normal(size=8), dtype=wp.float64) for _ in range(3)]
+    y = wp.array(rng.normal(size=8), dtype=wp.float64)
+    out = wp.zeros(8, dtype=wp.float64)
+    launches = RecordedLaunches("cpu")
+    for step in range(7):
+        x = xs[step % 3]
+        if step == 4:  # captured: Warp's own path, which must see the lazily kept arrays
+            with wp.ScopedCapture(device="cpu") as capture:
+                launches.launch("axpy", _axpy, 8, [2.0, 0, x, y, out])
+            out.zero_()
+            wp.capture_launch(capture.graph)
+        else:
+            launches.launch("axpy", _axpy, 8, [2.0, 0, x, y, out])
+        np.testing.assert_array_equal(out.numpy(), _expected(2.0, 0, x, y, 8))
+    wrong = wp.array(rng.normal(size=8), dtype=wp.float32)
+    with pytest.raises(RuntimeError, match="dtype"):
+        launches.launch("axpy", _axpy, 8, [2.0, 0, wrong, y, out])
