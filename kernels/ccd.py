@@ -172,6 +172,28 @@ def farther_than(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec
 
 
 @wp.func
+def box_farther_than(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d, distance: wp.float64) -> bool:
+    """A cheaper sufficient test than :func:`farther_than` (rows 0-3 in a query's order): the
+    primitives' bounding boxes are more than ``distance`` apart along an axis, which bounds
+    their distance from below (each primitive lies in its box). It rejects the pairs of a flat
+    sheet that lie in one plane, which the plane test cannot. The gaps are differences of two
+    coordinates (rounded by at most ``u`` of their size), so a caller adds the same rounding
+    (:func:`filter_rounding`) as for the plane test."""
+    lo_a = y0
+    hi_a = y0
+    lo_b = wp.min(y2, y3)
+    hi_b = wp.max(y2, y3)
+    if kind == VERTEX_FACE:
+        lo_b = wp.min(lo_b, y1)
+        hi_b = wp.max(hi_b, y1)
+    else:
+        lo_a = wp.min(y0, y1)
+        hi_a = wp.max(y0, y1)
+    gap = wp.max(lo_b - hi_a, lo_a - hi_b)
+    return wp.max(gap[0], wp.max(gap[1], gap[2])) > distance
+
+
+@wp.func
 def collinear_pair(kind: int, combo: int) -> wp.vec3i:
     """(vertex, edge start, edge end) of the vertex-edge combination ``combo`` (-1 when unused)."""
     if kind == VERTEX_FACE:

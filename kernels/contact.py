@@ -9,7 +9,7 @@ the distance.
 
 import warp as wp
 
-from kernels.ccd import farther_than, filter_rounding, pair_vertex_indices
+from kernels.ccd import box_farther_than, farther_than, filter_rounding, pair_vertex_indices
 from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, max_abs_vec3, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
@@ -75,7 +75,10 @@ def pair_proximity_kernel(
             reach_a = wp.max(reach_a, motion_radius[q[1]])
         reach = reach_a + reach_b
         reach = reach + filter_rounding(extent + wp.float64(4.0) * reach, y0)
-    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], wp.max(max_distance, reach) + filter_rounding(extent, y0)):
+    threshold = wp.max(max_distance, reach) + filter_rounding(extent, y0)
+    if box_farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], threshold):
+        return
+    if farther_than(kind, y0, x[q[1]], x[q[2]], x[q[3]], threshold):
         return
     off = wp.vec3d()
     if kind == 0:

@@ -751,10 +751,14 @@ def _filter_soundness_kernel(
     distance_factor: wp.float64,
     rejected: wp.array(dtype=wp.int32),
     exact_rejects: wp.array(dtype=wp.int32),
+    box_rejected: wp.array(dtype=wp.int32),
+    threshold: wp.array(dtype=wp.float64),
+    rounding: wp.array(dtype=wp.float64),
 ):
     """Per query: does the plane / line prefilter reject it (at the narrow phase's threshold,
-    with the distance error factor given: 256 x tolerance_scale), and does the exact start
-    distance test it stands in for reject it too."""
+    with the distance error factor given: 256 x tolerance_scale), does the bounding-box one
+    (kernels.ccd.box_farther_than, the proximity kernel's, same threshold), and does the exact
+    start distance test they stand in for reject it too."""
     i = wp.tid()
     kind = int(kinds[i])
     m = queries[i]
@@ -762,10 +766,16 @@ def _filter_soundness_kernel(
     extent = kccd.relative_extent(m) + speed
     tol = distance_factor * kccd.UNIT_ROUNDOFF * extent
     y0 = kccd.row(m, 0)
+    rounding[i] = kccd.filter_rounding(extent, y0)
+    threshold[i] = tol + speed + rounding[i]
     rejected[i] = 0
     if kccd.farther_than(kind, y0, kccd.row(m, 1), kccd.row(m, 2), kccd.row(m, 3),
                          tol + speed + kccd.filter_rounding(extent, y0)):
         rejected[i] = 1
+    box_rejected[i] = 0
+    if kccd.box_farther_than(kind, y0, kccd.row(m, 1), kccd.row(m, 2), kccd.row(m, 3),
+                             tol + speed + kccd.filter_rounding(extent, y0)):
+        box_rejected[i] = 1
     exact_rejects[i] = 0
     if kccd.distance_at(kind, m, wp.float64(0.0)) > tol + speed:
         exact_rejects[i] = 1
@@ -806,14 +816,52 @@ def _start_gap_queries(rng, n_per_cell, far=False):
     return np.array(kinds, dtype=np.int32), np.array(queries)
 
 
-def _prefilter_and_exact(kinds, queries, tolerance_scale):
+def _box_border_queries(rng, n):
+    """Still vertex-face and edge-edge queries whose primitives touch at one point, one side's
+    box lying on the other's along an axis (a triangle's top vertex and the vertex above it;
+    an edge's top end and the other edge's bottom end), at centres from 0 to 1e5; and per query
+    the unit step along that axis which moves the upper primitive away: shifted by a gap ``g``
+    the boxes lie ``g`` apart and so do the primitives (the box test's border)."""
+    kinds, queries, shifts = [], [], []
+    for centre in (0.0, 1.0, 10.0, 1e3, 1e5):
+        for size in (1e-2, 1.0):
+            for _ in range(n):
+                axis = rng.integers(3)
+                up = np.eye(4 * 3)[axis].reshape(4, 3)  # row 0 moves
+                tri = centre + rng.uniform(-size, size, (3, 3))
+                start = np.array([tri[np.argmax(tri[:, axis])], *tri])
+                kinds.append(0)
+                queries.append(start)
+                shifts.append(up)
+                a = centre + rng.uniform(-size, size, (2, 3))
+                b0 = a[np.argmax(a[:, axis])]
+                d = rng.normal(size=3)
+                d[axis] = abs(d[axis]) + 0.1
+                start = np.array([*a, b0, b0 + size * d])
+                kinds.append(1)
+                queries.append(start)
+                shifts.append(np.vstack([np.zeros((2, 3)), np.eye(3)[[axis, axis]]]))  # rows 2, 3 move
+    return np.array(kinds, dtype=np.int32), np.array(queries), np.array(shifts)
+
+
+def _still(queries):
+    return np.concatenate([queries, queries], axis=1)
+
+
+def _prefilter_and_exact(kinds, queries, tolerance_scale, box=False):
     n = len(kinds)
     rejected = wp.zeros(n, dtype=wp.int32)
     exact = wp.zeros(n, dtype=wp.int32)
+    box_rejected = wp.zeros(n, dtype=wp.int32)
+    threshold = wp.zeros(n, dtype=wp.float64)
+    filter_rounding = wp.zeros(n, dtype=wp.float64)
     wp.launch(_filter_soundness_kernel, dim=n,
               inputs=[wp.array(kinds, dtype=wp.int32), wp.array(queries, dtype=kccd.mat83d),
-                      wp.float64(256.0 * tolerance_scale), rejected, exact])
-    return rejected.numpy().astype(bool), exact.numpy().astype(bool)
+                      wp.float64(256.0 * tolerance_scale), rejected, exact, box_rejected, threshold,
+                      filter_rounding])
+    if box == "threshold":  # the exact test's (tol + speed) and the prefilters' (plus rounding)
+        return threshold.numpy(), threshold.numpy() - filter_rounding.numpy()
+    return (box_rejected if box else rejected).numpy().astype(bool), exact.numpy().astype(bool)
 
 
 @pytest.mark.parametrize("tolerance_scale", [1.0, 0.01])
@@ -830,6 +878,29 @@ def test_distance_prefilter_rejects_only_what_the_exact_start_distance_rejects(t
     rejected, exact = _prefilter_and_exact(*_start_gap_queries(rng, 50, far=True), tolerance_scale)
     assert not (rejected & ~exact).any(), np.flatnonzero(rejected & ~exact)[:10]
     assert rejected.sum() >= 0.8 * exact.sum() > 0, (rejected.sum(), exact.sum())
+
+
+@pytest.mark.parametrize("tolerance_scale", [1.0, 0.01])
+def test_box_prefilter_rejects_only_what_the_exact_start_distance_rejects(tolerance_scale):
+    """The proximity kernel's bounding-box test (kernels.ccd.box_farther_than, at the plane
+    test's threshold) never rejects a pair the exact start distance keeps: on queries at the
+    plane test's border, on far ones, and at its own border (primitives touching at one point
+    along an axis, then moved apart along it by 0.9 to 1.1 times the threshold: the exact
+    distance is the gap), by 0.9 to 1.1 times the exact test's threshold, or 1 to 1.5 times
+    its own (the exact one plus rounding). Ground truth: the exact test's own decision. Past
+    its own threshold it must reject the pairs (else it filters nothing)."""
+    rng = np.random.default_rng(4)
+    for queries in (_start_gap_queries(rng, 100), _start_gap_queries(rng, 50, far=True)):
+        rejected, exact = _prefilter_and_exact(*queries, tolerance_scale, box=True)
+        assert not (rejected & ~exact).any(), np.flatnonzero(rejected & ~exact)[:10]
+    kinds, touching, shift = _box_border_queries(rng, 100)
+    own, exact_threshold = _prefilter_and_exact(kinds, _still(touching), tolerance_scale, box="threshold")
+    at_exact = rng.uniform(size=len(kinds)) < 0.5
+    gap = np.where(at_exact, exact_threshold * rng.uniform(0.9, 1.1, len(kinds)), own * rng.uniform(1.0, 1.5, len(kinds)))
+    rejected, exact = _prefilter_and_exact(kinds, _still(touching + gap[:, None, None] * shift), tolerance_scale, box=True)
+    assert not (rejected & ~exact).any(), np.flatnonzero(rejected & ~exact)[:10]
+    assert 0.1 * at_exact.sum() < (~exact & at_exact).sum() < 0.9 * at_exact.sum()  # the exact border is crossed
+    assert rejected[~at_exact].mean() > 0.95, rejected[~at_exact].mean()
 
 
 def test_narrow_phase_hits_at_the_start_every_pair_within_the_distance_tolerance():
