@@ -64,8 +64,8 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (body_world_inverse_inertia_kernel, contact_geometry_kernel, pair_weights_kernel,
-                             planned_bodies_kernel, planned_particles_kernel, pose_vertices_kernel,
+from kernels.contact import (contact_geometry_kernel, pair_weights_kernel,
+                             planned_substep_kernel, pose_substep_kernel, pose_vertices_kernel,
                              solve_contacts_kernel)
 from sim.model import Model, State
 from sim.rotation import cross, quat_to_matrix, row_norms
@@ -445,6 +445,7 @@ class ImpulseCollisionHandler:
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
+        self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=model.device)  # an unread inertia array
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
         self._out = model.state()
         self.last_sweeps = 0
@@ -510,6 +511,28 @@ class ImpulseCollisionHandler:
             R.vertex_type, R.vertex_owner, R.local, x, lever])
         return host(x)[:n], host(lever)[:n], x, lever
 
+    def _pose_substep(self, state_in: State, state_pred: State):
+        """:meth:`_pose` of ``state_in`` and of ``state_pred`` and the bodies' world inverse
+        inertia tensors at ``state_in`` (``R I^-1 R^T``), in one launch
+        (:func:`kernels.contact.pose_substep_kernel`).
+
+        Returns:
+            (start positions, start lever arms, their device arrays (2), predicted positions,
+            inverse inertia device array): host arrays (V + 1, 3) as :meth:`_pose`'s.
+        """
+        n, R, B = self.n_vertices + 1, self._replay, self.n_bodies
+        empty = self._staging.empty
+        x0, lever0 = empty("x_start", n, wp.vec3d), empty("lever_start", n, wp.vec3d)
+        x1 = empty("x_predicted", n, wp.vec3d)
+        inv_inertia_w = empty("inv_inertia_w", max(B, 1), wp.mat33d)
+        P = self.n_particles
+        self._launches.launch("pose_substep", pose_substep_kernel, max(n, B), [
+            state_in.particle_q if P else R.empty_vec, state_in.body_q if B else R.empty_pose,
+            state_pred.particle_q if P else R.empty_vec, state_pred.body_q if B else R.empty_pose,
+            R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
+            n, B, x0, lever0, x1, inv_inertia_w])
+        return host(x0)[:n], host(lever0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
+
     def _plan(self, state_in: State, state_pred: State, particle_time, body_time, vp, bv, h: float):
         """End positions of the substep ``h`` [s] for the particles' / bodies' earliest contact
         times ``particle_time`` (P,), ``body_time`` (B,) [s] (inf: none, the prediction of
@@ -521,21 +544,19 @@ class ImpulseCollisionHandler:
             (particle positions (P, 3), body poses (B, 7), vertex positions (V + 1, 3)): views
             of the handler's buffers (the next plan overwrites them).
         """
-        put, empty = self._staging.put, self._staging.empty
-        P, B = self.n_particles, self.n_bodies
-        x1p = bq1 = None
-        if P:
-            x1p = empty("planned_particle_q", P, wp.vec3d)
-            self._launches.launch("plan_particles", planned_particles_kernel, P, [
-                state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, put("planned_vp", vp, wp.vec3d),
-                put("particle_time", particle_time, wp.float64), float(h), x1p])
-        if B:
-            bq1 = empty("planned_body_q", B, wp.transformd)
-            self._launches.launch("plan_bodies", planned_bodies_kernel, B, [
-                state_in.body_q, state_pred.body_q, state_pred.body_qd, put("planned_bv", bv, wp.spatial_vectord),
-                put("body_time", body_time, wp.float64), float(h), bq1])
-        x1 = self._pose("planned", x1p, bq1)[0]
-        return (host(x1p)[:P] if P else np.zeros((0, 3)), host(bq1)[:B] if B else np.zeros((0, 7)), x1)
+        put, empty, R = self._staging.put, self._staging.empty, self._replay
+        P, B, n = self.n_particles, self.n_bodies, self.n_vertices + 1
+        x1p = empty("planned_particle_q", P, wp.vec3d)
+        bq1 = empty("planned_body_q", B, wp.transformd)
+        x1 = empty("x_planned", n, wp.vec3d)
+        particles = [state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, put("planned_vp", vp, wp.vec3d),
+                     put("particle_time", particle_time, wp.float64)] if P else [R.empty_vec] * 4 + [self._no_time]
+        bodies = [state_in.body_q, state_pred.body_q, state_pred.body_qd, put("planned_bv", bv, wp.spatial_vectord),
+                  put("body_time", body_time, wp.float64)] if B else \
+            [R.empty_pose, R.empty_pose, R.empty_twist, R.empty_twist, self._no_time]
+        self._launches.launch("plan", planned_substep_kernel, P + B + n, [
+            *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
+        return (host(x1p)[:P] if P else np.zeros((0, 3)), host(bq1)[:B] if B else np.zeros((0, 7)), host(x1)[:n])
 
     def _proximity_rows(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float):
         """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3)):
@@ -759,16 +780,6 @@ class ImpulseCollisionHandler:
         rot = quat_to_matrix(body_q[:, 3:7])
         return rot @ self._body_inertia @ np.swapaxes(rot, 1, 2)
 
-    def _world_inverse_inertia(self, body_q: wp.array) -> wp.array:
-        """World inverse inertia tensors R I^-1 R^T (B,) of the bodies at the device poses
-        ``body_q`` (:func:`kernels.contact.body_world_inverse_inertia_kernel`, the replay's), in
-        a handler buffer (one row of zeros without bodies)."""
-        out = self._staging.empty("inv_inertia_w", max(self.n_bodies, 1), wp.mat33d)
-        if self.n_bodies:
-            self._launches.launch("inv_inertia_w", body_world_inverse_inertia_kernel, self.n_bodies,
-                                  [body_q, self.model.body_inv_inertia, out])
-        return out
-
     def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
         """Earliest time of impact [s] per particle / body among the contacts of the set (inf
         where none): its velocity switches from ``v-`` to ``v+`` then."""
@@ -872,10 +883,8 @@ class ImpulseCollisionHandler:
         bq1_pred = host(state_pred.body_q) if B else np.zeros((0, 7))
         vp, bv = vp_minus.copy(), bv_minus.copy()
         # the vertices at the start (with the rigid ones' lever arms) and the predicted end
-        x0, lever0, x0_w, lever0_w = self._pose("start", state_in.particle_q, state_in.body_q)
+        x0, lever0, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
         r0 = lever0[self.shape_offset:self.static_offset]
-        x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
-        inv_inertia_w = self._world_inverse_inertia(state_in.body_q)
         inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         zones = None  # the fail-safe's impact zones, made when it first acts (rare)
         delta = self.separation

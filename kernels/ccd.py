@@ -282,8 +282,10 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
     # most candidates of a broad phase are farther apart than they move: a plane / line distance
     # rules them out before the exact distance. Its threshold is the exact test's below plus both
     # distances' rounding (FILTER_ROUNDING_FACTOR), so it rejects only pairs that test rejects too
-    if farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3),
-                    tol_distance + speed + filter_rounding(extent, row(m, 0))):
+    threshold = tol_distance + speed + filter_rounding(extent, row(m, 0))
+    if box_farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3), threshold):
+        return wp.vec3d(zero, inf, wp.float64(-1.0))
+    if farther_than(kind, row(m, 0), row(m, 1), row(m, 2), row(m, 3), threshold):
         return wp.vec3d(zero, inf, wp.float64(-1.0))
     start_distance = distance_at(kind, m, zero)
     if start_distance <= tol_distance:

@@ -323,13 +323,64 @@ def pose_vertices_kernel(
         x[v] = particle_q[o]
         lever[v] = zero
     elif kind == VERTEX_BODY:
-        X = body_q[o]
-        r = wp.quat_rotate(wp.transform_get_rotation(X), local[v])
-        x[v] = wp.transform_get_translation(X) + r
+        r = body_lever(body_q[o], local[v])
+        x[v] = wp.transform_get_translation(body_q[o]) + r
         lever[v] = r
     else:
         x[v] = local[v]
         lever[v] = zero
+
+
+@wp.func
+def body_lever(X: wp.transformd, local: wp.vec3d) -> wp.vec3d:
+    """The lever arm (world offset from the centre of mass) of a body-frame point ``local`` of a
+    body at pose ``X``."""
+    return wp.quat_rotate(wp.transform_get_rotation(X), local)
+
+
+@wp.kernel
+def pose_substep_kernel(
+    particle_q0: wp.array(dtype=wp.vec3d),
+    body_q0: wp.array(dtype=wp.transformd),
+    particle_q1: wp.array(dtype=wp.vec3d),
+    body_q1: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    vertex_count: int,
+    body_count: int,
+    x0: wp.array(dtype=wp.vec3d),
+    lever0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    inv_inertia_w: wp.array(dtype=wp.mat33d),
+):
+    """One launch for what a substep's collision handling needs first: the vertices at the start
+    (``x0``, ``lever0``, as :func:`pose_vertices_kernel` poses ``particle_q0``, ``body_q0``), at
+    the predicted end (``x1``, of ``particle_q1``, ``body_q1``) and, in the first threads, the
+    bodies' world inverse inertia at the start (:func:`body_world_inverse_inertia_kernel`).
+    Launched over ``max(vertex_count, body_count)`` threads."""
+    v = wp.tid()
+    if v < body_count:
+        inv_inertia_w[v] = world_inverse_inertia(body_q0[v], body_inv_inertia[v])
+    if v >= vertex_count:
+        return
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if kind == VERTEX_PARTICLE:
+        x0[v] = particle_q0[o]
+        lever0[v] = zero
+        x1[v] = particle_q1[o]
+    elif kind == VERTEX_BODY:
+        r = body_lever(body_q0[o], local[v])
+        x0[v] = wp.transform_get_translation(body_q0[o]) + r
+        lever0[v] = r
+        x1[v] = wp.transform_get_translation(body_q1[o]) + body_lever(body_q1[o], local[v])
+    else:
+        x0[v] = local[v]
+        lever0[v] = zero
+        x1[v] = local[v]
 
 
 @wp.func
@@ -597,8 +648,15 @@ def body_world_inverse_inertia_kernel(
 ):
     """``R I^-1 R^T`` of body ``tid`` at pose ``body_q``."""
     b = wp.tid()
-    R = wp.quat_to_matrix(wp.transform_get_rotation(body_q[b]))
-    out[b] = R * inv_inertia[b] * wp.transpose(R)
+    out[b] = world_inverse_inertia(body_q[b], inv_inertia[b])
+
+
+@wp.func
+def world_inverse_inertia(X: wp.transformd, inv_inertia: wp.mat33d) -> wp.mat33d:
+    """``R I^-1 R^T`` of a body at pose ``X`` (rotation R) with body-frame inverse inertia
+    ``inv_inertia``."""
+    R = wp.quat_to_matrix(wp.transform_get_rotation(X))
+    return R * inv_inertia * wp.transpose(R)
 
 
 @wp.kernel
@@ -1109,11 +1167,7 @@ def planned_particles_kernel(
     ``tid`` at its earliest contact time ``owner_time`` [s] (inf: none, the prediction stays; 0
     for an impact zone's)."""
     i = wp.tid()
-    ts = owner_time[i]
-    if wp.isinf(ts):
-        x1[i] = x_pred[i]
-    else:
-        x1[i] = time_of_impact_position(x0[i], v_minus[i], v_plus[i], ts, h)
+    x1[i] = planned_position(x0[i], x_pred[i], v_minus[i], v_plus[i], owner_time[i], h)
 
 
 @wp.kernel
@@ -1128,11 +1182,77 @@ def planned_bodies_kernel(
 ):
     """The same for body ``tid`` (:func:`time_of_impact_pose`)."""
     b = wp.tid()
-    ts = owner_time[b]
+    q1[b] = planned_pose(q0[b], q_pred[b], v_minus[b], v_plus[b], owner_time[b], h)
+
+
+@wp.func
+def planned_position(x0: wp.vec3d, x_pred: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64,
+                     h: wp.float64) -> wp.vec3d:
+    """:func:`planned_particles_kernel`'s end of one particle."""
     if wp.isinf(ts):
-        q1[b] = q_pred[b]
+        return x_pred
+    return time_of_impact_position(x0, v_minus, v_plus, ts, h)
+
+
+@wp.func
+def planned_pose(q0: wp.transformd, q_pred: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord,
+                 ts: wp.float64, h: wp.float64) -> wp.transformd:
+    """:func:`planned_bodies_kernel`'s end pose of one body."""
+    if wp.isinf(ts):
+        return q_pred
+    return time_of_impact_pose(q0, v_minus, v_plus, ts, h)
+
+
+@wp.kernel
+def planned_substep_kernel(
+    particle_q0: wp.array(dtype=wp.vec3d),
+    particle_q_pred: wp.array(dtype=wp.vec3d),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_time: wp.array(dtype=wp.float64),
+    body_q0: wp.array(dtype=wp.transformd),
+    body_q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    particle_count: int,
+    body_count: int,
+    particle_q1: wp.array(dtype=wp.vec3d),
+    body_q1: wp.array(dtype=wp.transformd),
+    x1: wp.array(dtype=wp.vec3d),
+):
+    """The Gauss-Seidel response's plan in one launch: the particles' ends
+    (:func:`planned_particles_kernel`) in the first ``P`` threads, the bodies' (:func:`planned_bodies_kernel`)
+    in the next ``B``, then the vertices posed at those ends (:func:`pose_vertices_kernel`), each
+    vertex thread working out its owner's end itself (no thread waits for another's).
+    Launched over ``P + B + vertices`` threads (``P``, ``B``: ``particle_count``,
+    ``body_count``)."""
+    i = wp.tid()
+    P = particle_count
+    B = body_count
+    if i < P:
+        particle_q1[i] = planned_position(particle_q0[i], particle_q_pred[i], particle_v_minus[i], particle_v_plus[i],
+                                          particle_time[i], h)
+        return
+    if i < P + B:
+        b = i - P
+        body_q1[b] = planned_pose(body_q0[b], body_q_pred[b], body_v_minus[b], body_v_plus[b], body_time[b], h)
+        return
+    v = i - P - B
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        x1[v] = planned_position(particle_q0[o], particle_q_pred[o], particle_v_minus[o], particle_v_plus[o],
+                                 particle_time[o], h)
+    elif kind == VERTEX_BODY:
+        X = planned_pose(body_q0[o], body_q_pred[o], body_v_minus[o], body_v_plus[o], body_time[o], h)
+        x1[v] = wp.transform_get_translation(X) + body_lever(X, local[v])
     else:
-        q1[b] = time_of_impact_pose(q0[b], v_minus[b], v_plus[b], ts, h)
+        x1[v] = local[v]
 
 
 # ---------------------------------------------------------------------------- impact zones
