@@ -54,7 +54,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, upload
+from collision.buffers import RecordedLaunches, host, upload, zero
 from collision.roots import init_warp
 from kernels import broad_phase as _k
 
@@ -439,7 +439,7 @@ class BroadPhase:
         dev = self.device
         tail = [self._self_ok, self._static, self._counter]
         for _attempt in range(2):
-            self._counter.zero_()
+            zero(self._counter)
             for key, kernel, dim, inputs in launches:
                 self._launches.launch(key, kernel, dim, [*inputs, *tail, buf])
             total = int(host(self._counter)[0])

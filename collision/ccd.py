@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, upload
+from collision.buffers import RecordedLaunches, host, upload, zero
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
@@ -159,6 +159,16 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
     return hit.astype(bool), toi, source
 
 
+
+# no hit of _collect (kind, pair, order) / of CandidateNarrowPhase.ccd (kind, pair, time, source,
+# vertices): read-only, shared
+_NONE = tuple(a for a in (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)))
+_NO_CCD_HITS = (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0, dtype=np.int64),
+                np.zeros((0, 4), dtype=np.int64))
+for _a in _NONE + _NO_CCD_HITS:
+    _a.flags.writeable = False
+
+
 class CandidateNarrowPhase:
     """The narrow phase (and the proximity test) of a mesh's broad-phase candidate pairs, run
     where the broad phase left them (:meth:`collision.broad_phase.BroadPhase.query_device`): one
@@ -230,6 +240,7 @@ class CandidateNarrowPhase:
         self._radius = wp.empty(n, dtype=wp.float64, device=dev)
         self._no_radius = wp.empty(0, dtype=wp.float64, device=dev)
         self._reach = None  # (cover, positions, radii, buffers) of the last near() with motion radii
+        self._x0_holds_reach = False  # whether the start buffer still holds those positions
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
         self.reuses = 0  # calls answered from a cover
@@ -298,6 +309,7 @@ class CandidateNarrowPhase:
                 and np.shape(x0) == c[5].shape and np.shape(x1) == c[5].shape:
             if self._outside(x0, x1 if end_moves else x0, c) <= self.COVER_SAFETY * (c[3] - inflation):
                 self.reuses += 1
+                self._x0_holds_reach = False
                 return c[0], upload(self._x0, x0), upload(self._x1, x1) if end_moves else self._x1
         self._cover = None  # the fresh query overwrites the broad phase's buffers
         self.queries += 1
@@ -324,12 +336,12 @@ class CandidateNarrowPhase:
         pair (the order of ``BroadPhase.query``)."""
         vf, n_vf, ee, n_ee = buffers
         self._reserve(n_vf + n_ee)
-        self._counter.zero_()
+        zero(self._counter)
         if n_vf + n_ee:
             launch(vf, n_vf, ee, n_ee)
         total = int(host(self._counter)[0])
         if total == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
+            return _NONE
         kind = host(self._kind)[:total].astype(np.int64)
         pair = host(self._pairs)[:total].astype(np.int64)
         order = np.lexsort((pair[:, 1], pair[:, 0], kind))
@@ -350,9 +362,19 @@ class CandidateNarrowPhase:
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
-        buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
         r = self._reach
-        if r is not None and t == 0.0 and self._cover is r[0] and buffers is r[0][0] and np.array_equal(x0, r[1]):
+        c = self._cover
+        # from the positions of the last near() with motion radii, in the cover it used
+        from_near = r is not None and t == 0.0 and c is r[0] and c[4] == self.broad_phase.query_count \
+            and np.shape(x1) == c[5].shape and np.array_equal(x0, r[1])
+        if from_near and self._x0_holds_reach and self._outside(x1, x1, c) <= self.COVER_SAFETY * c[3]:
+            # the start was covered there with less room and is on the device already: only the
+            # end is checked and uploaded (_candidates' cover test otherwise)
+            self.reuses += 1
+            buffers, xa, xb = c[0], self._x0, upload(self._x1, x1)
+        else:
+            buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
+        if from_near and self._cover is r[0] and buffers is r[0][0]:
             step = np.subtract(x1, x0)
             if (np.einsum("ij,ij->i", step, step) <= r[2]).all():
                 buffers = r[3]
@@ -370,6 +392,8 @@ class CandidateNarrowPhase:
 
         kind, pair, order = self._collect(buffers, launch)
         n = len(kind)
+        if n == 0:
+            return _NO_CCD_HITS
         toi = host(self._time)[:n][order].astype(np.float64)
         return (kind, pair, toi, host(self._source)[:n][order].astype(np.int64),
                 host(self._vertices)[:n][order].astype(np.int64))
@@ -396,14 +420,15 @@ class CandidateNarrowPhase:
             motion_radius = np.asarray(motion_radius, dtype=np.float64)
             if motion_radius.shape != (self._radius.shape[0],):
                 raise ValueError(f"motion_radius: expected shape ({self._radius.shape[0]},), got {motion_radius.shape}")
-            if not (motion_radius >= 0.0).all() or not np.isfinite(motion_radius).all():
+            # NaN fails the first comparison, inf the second
+            if len(motion_radius) and not (motion_radius.min() >= 0.0 and np.isfinite(motion_radius.max())):
                 raise ValueError("motion_radius: radii must be finite and >= 0")
         buffers, xa, _ = self._candidates(x, x, float(max_distance), end_moves=False)
         radius = self._no_radius
         if motion_radius is not None and self._kernels is _k and self._cover is not None \
                 and buffers is self._cover[0]:
             radius = upload(self._radius, motion_radius)
-            self._reach_counter.zero_()
+            zero(self._reach_counter)
             for kind in (0, 1):
                 n = buffers[2 * kind + 1]
                 if self._reach_pairs[kind].shape[0] < n:
@@ -418,6 +443,7 @@ class CandidateNarrowPhase:
 
         kind, pair, order = self._collect(buffers, launch)
         if radius is not self._no_radius:
+            self._x0_holds_reach = True  # the cover path of _candidates uploaded x there
             counts = host(self._reach_counter)
             self._reach = (self._cover, np.array(x, dtype=np.float64), np.square(motion_radius),
                            (self._reach_pairs[0], int(counts[0]), self._reach_pairs[1], int(counts[1])))

@@ -189,13 +189,14 @@ class _Contacts:
         at = np.minimum(np.searchsorted(ordered, keys), len(ordered) - 1)
         return np.where(ordered[at] == keys, order[at], -1)
 
-    def _first(self, keys, kind, idx, w, n, toi, target, timed):
+    def _first(self, keys, kind, idx, w, n, toi, target, timed, copy):
         """:meth:`add` into the empty set (every substep's first: no pair is in the set yet)."""
         c = len(keys)
-        kind = np.array(kind, dtype=np.int64)
+        array = np.array if copy else np.asarray
+        kind = array(kind, dtype=np.int64)
         self.key, self.kind, self.edge_edge = keys, kind, kind == 1
-        self.idx, self.w, self.n = np.array(idx, dtype=np.int64), np.array(w, dtype=np.float64), np.array(n, dtype=np.float64)
-        self.toi, self.target = np.array(toi, dtype=np.float64), np.array(target, dtype=np.float64)
+        self.idx, self.w, self.n = array(idx, dtype=np.int64), array(w, dtype=np.float64), array(n, dtype=np.float64)
+        self.toi, self.target = array(toi, dtype=np.float64), array(target, dtype=np.float64)
         self.timed = np.zeros(c, dtype=bool) if timed is None else np.array(timed, dtype=bool)
         self.jn, self.jt = np.zeros(c), np.zeros((c, 3))
         zero = np.zeros(c, dtype=np.int64)
@@ -211,10 +212,11 @@ class _Contacts:
             return found
         return found & (self.toi[np.maximum(row, 0)] >= end) & (np.asarray(toi) >= end)
 
-    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None):
+    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None, copy=True):
         """Adds contacts, pairs distinct (a pair already present takes the new normal, weights
         and target, and the earlier of the two times). ``timed`` (C,) bool: the time is
-        differentiated by the replay (default: none is).
+        differentiated by the replay (default: none is). ``copy=False``: the set may keep the
+        arrays given (the caller's own, not used after).
 
         Returns:
             (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
@@ -226,7 +228,7 @@ class _Contacts:
             raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         before = len(self.toi)
         if before == 0:
-            return self._first(keys, kind, idx, w, n, toi, target, timed)
+            return self._first(keys, kind, idx, w, n, toi, target, timed, copy)
         new_index = np.full(before, -1, dtype=np.int64)
         keep_toi = np.zeros(before, dtype=np.int64)
         keep_target = np.zeros(before, dtype=np.int64)
@@ -313,6 +315,17 @@ class _CallContacts:
 
 
 _NO_CONTACTS = _CallContacts()
+
+
+def _read_only(*arrays):
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+# no CCD hit (ImpulseCollisionHandler._ccd_candidates): kind, pair, vertex indices, time, source
+_NO_HITS = _read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
+                      np.zeros(0), np.zeros(0, dtype=np.int64))
 """The record of a call without contacts (shared: a record is not changed after it is made)."""
 
 
@@ -464,6 +477,11 @@ class ImpulseCollisionHandler:
         inv_mass[is_particle] = self.particle_inv_mass[self.vertex_owner[is_particle]]
         self._mobile_vertex = (self.vertex_type == _BODY) | (inv_mass > 0)
         self.n_bodies = int(m.body_count) if self.n_shape else 0
+        # each vertex's particle / body, one past the last for the other kinds (_owner_times)
+        self._particle_slot = np.where(self.vertex_type == _PARTICLE, self.vertex_owner, self.n_particles)
+        self._body_slot = np.where(self.vertex_type == _BODY, self.vertex_owner, self.n_bodies)
+        # the contact times of a plan that no contact changed (read only)
+        self._inf_p, self._inf_b = _read_only(np.full(self.n_particles, np.inf), np.full(self.n_bodies, np.inf))
         self.body_inv_mass = np.zeros(0)
         self._body_mass = np.zeros(0)
         if self.n_bodies:
@@ -558,7 +576,15 @@ class ImpulseCollisionHandler:
             *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
         return (host(x1p)[:P] if P else np.zeros((0, 3)), host(bq1)[:B] if B else np.zeros((0, 7)), host(x1)[:n])
 
-    def _proximity_rows(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float):
+    def _plane_distances(self, x: np.ndarray) -> np.ndarray | None:
+        """Signed distances (K, planes) of the plane-tested vertices (:attr:`_plane_vertex_ids`)
+        at positions ``x`` (V + 1, 3) from the planes, or None without planes or such vertices
+        (one product per call: the proximity pass and the CCD rounds share the start's)."""
+        if not (len(self._plane_vertex_ids) and len(self.planes)):
+            return None
+        return x[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
+
+    def _proximity_rows(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float, plane_d0: np.ndarray | None):
         """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3)):
         pairs of primitives whose exact closest points are nearer than ``delta`` [m], then
         movable vertices nearer than ``delta`` to a plane (:meth:`_plane_proximity`).
@@ -566,6 +592,7 @@ class ImpulseCollisionHandler:
         The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
         ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
         3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`).
+        ``plane_d0``: :meth:`_plane_distances` of ``x0``.
 
         Returns:
             (kind (C,), pair (C, 2), vertex indices (C, 4)).
@@ -580,7 +607,11 @@ class ImpulseCollisionHandler:
         kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
         near = row_norms(off) < delta
         kind, pair, idx = kind[near], pair[near], idx[near]
-        plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(x0, delta)
+        if plane_d0 is None:
+            return kind, pair, idx
+        plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(plane_d0, delta)
+        if not len(plane_kind):
+            return kind, pair, idx
         return (np.concatenate([kind, plane_kind]), np.concatenate([pair, plane_pair]),
                 np.concatenate([idx, plane_idx]))
 
@@ -622,14 +653,11 @@ class ImpulseCollisionHandler:
                               [put("kind", kind, wp.int32), put("y", np.reshape(y, (-1, 3)), wp.vec3d), out])
         return host(out)[: len(y)].copy()
 
-    def _plane_proximity(self, x0: np.ndarray, delta: float):
+    def _plane_proximity(self, dist: np.ndarray, delta: float):
         """Movable vertices (unpinned particles, rigid vertices) closer than ``delta`` to (or
-        behind) a plane at the start: (kind 2, pair (vertex, plane), vertex indices (vertex,
-        dummy x3), signed distance)."""
-        if not (len(self._plane_vertex_ids) and len(self.planes)):
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0)
+        behind) a plane at the start, from their :meth:`_plane_distances` ``dist`` there: (kind
+        2, pair (vertex, plane), vertex indices (vertex, dummy x3), signed distance)."""
         verts = self._plane_vertex_ids
-        dist = x0[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
         # the integrator's plane stage leaves particles at exactly delta, which this product
         # may round to a hair below: such a particle is no contact (without the slack a resting
         # cloth joined the solve on every substep, all of it in one replayed system)
@@ -638,12 +666,13 @@ class ImpulseCollisionHandler:
 
     def _plane_rows(self, vertex: np.ndarray, plane: np.ndarray):
         kind = np.full(len(vertex), 2, dtype=np.int64)
-        pair = np.column_stack([vertex, plane]).astype(np.int64)
+        pair = np.empty((len(vertex), 2), dtype=np.int64)
+        pair[:, 0], pair[:, 1] = vertex, plane
         idx = np.full((len(vertex), 4), self.n_vertices, dtype=np.int64)
         idx[:, 0] = vertex
         return kind, pair, idx
 
-    def _ccd_candidates(self, x0: np.ndarray, x1: np.ndarray):
+    def _ccd_candidates(self, x0: np.ndarray, x1: np.ndarray, plane_d0: np.ndarray | None):
         """Hits of the straight paths ``x0 -> x1`` (with the dummy vertex last): vertex-face,
         edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a movable vertex
         ends behind the plane, moving inwards).
@@ -651,7 +680,7 @@ class ImpulseCollisionHandler:
         Returns:
             (kind (C,), pair (C, 2), vertex indices (C, 4), time of impact as a fraction of the
             substep (C,), source (C,): the narrow phase's (0 start, 1-3 cubic slot, 4 collinear,
-            5 advancement) or 6 for planes).
+            5 advancement) or 6 for planes). ``plane_d0``: :meth:`_plane_distances` of ``x0``.
         """
         n = self.n_vertices
         kinds, pairs, idxs, tois, sources = [], [], [], [], []
@@ -662,10 +691,10 @@ class ImpulseCollisionHandler:
             idxs.append(idx)
             tois.append(toi)
             sources.append(source)
-        if len(self._plane_vertex_ids) and len(self.planes):
+        if plane_d0 is not None:
             verts = self._plane_vertex_ids
-            d0 = x0[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
-            d1 = x1[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
+            d0 = plane_d0
+            d1 = self._plane_distances(x1)
             v, k = np.nonzero((d1 < 0.0) & (d1 < d0))
             if len(v):
                 kind, pair, idx = self._plane_rows(verts[v], k)
@@ -675,7 +704,9 @@ class ImpulseCollisionHandler:
                 tois.append(np.clip(d0[v, k] / (d0[v, k] - d1[v, k]), 0.0, 1.0))
                 sources.append(np.full(len(v), 6, dtype=np.int64))
         if not kinds:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0), np.zeros(0, dtype=np.int64)
+            return _NO_HITS
+        if len(kinds) == 1:
+            return kinds[0], pairs[0], idxs[0], tois[0], sources[0]
         return (np.concatenate(kinds), np.concatenate(pairs), np.concatenate(idxs), np.concatenate(tois),
                 np.concatenate(sources))
 
@@ -783,27 +814,25 @@ class ImpulseCollisionHandler:
     def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
         """Earliest time of impact [s] per particle / body among the contacts of the set (inf
         where none): its velocity switches from ``v-`` to ``v+`` then."""
-        t_p = np.full(n_p, np.inf)
-        t_b = np.full(n_b, np.inf)
+        # one slot past the owners takes the other kinds' vertices (no masks by kind)
+        t_p = np.full(n_p + 1, np.inf)
+        t_b = np.full(n_b + 1, np.inf)
         if len(cs):
             idx = cs.idx.ravel()
-            t = self.vertex_type[idx]
-            o = self.vertex_owner[idx]
             at_start = not cs.toi.any()  # proximity contacts only (resting contact): all at 0
             toi = None if at_start else np.repeat(cs.toi, 4)
             if n_p:
-                p = (t == _PARTICLE) & (cs.w.ravel() != 0)
+                p = cs.w.ravel() != 0
                 if at_start:
-                    t_p[o[p]] = 0.0
+                    t_p[self._particle_slot[idx[p]]] = 0.0
                 else:
-                    np.minimum.at(t_p, o[p], toi[p])
+                    np.minimum.at(t_p, self._particle_slot[idx[p]], toi[p])
             if n_b:
-                b = t == _BODY
                 if at_start:
-                    t_b[o[b]] = 0.0
+                    t_b[self._body_slot[idx]] = 0.0
                 else:
-                    np.minimum.at(t_b, o[b], toi[b])
-        return t_p, t_b
+                    np.minimum.at(t_b, self._body_slot[idx], toi)
+        return t_p[:n_p], t_b[:n_b]
 
     # ------------------------------------------------------------------------------------------
 
@@ -885,7 +914,7 @@ class ImpulseCollisionHandler:
         # the vertices at the start (with the rigid ones' lever arms) and the predicted end
         x0, lever0, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
         r0 = lever0[self.shape_offset:self.static_offset]
-        inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
+        inf_p, inf_b = self._inf_p, self._inf_b
         zones = None  # the fail-safe's impact zones, made when it first acts (rare)
         delta = self.separation
         self._sep_speed = delta / h
@@ -910,17 +939,18 @@ class ImpulseCollisionHandler:
                            COVER_AHEAD_LIMIT * delta)
         # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
         # and solved together
-        kind, pair, idx = self._proximity_rows(x0, x1_pred, delta)
+        plane_d0 = self._plane_distances(x0)
+        kind, pair, idx = self._proximity_rows(x0, x1_pred, delta, plane_d0)
         if len(kind):
             w, n, target = self._start_geometry(kind, pair, idx, x0_w, lever0_w, state_pred, h)
-            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target)
+            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target, copy=False)  # fresh arrays
             self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
 
         # 2-5. CCD rounds on the planned motion
         failsafe = False
         for iteration in itertools.count():
             x1p, bq1, t_p, t_b, x1 = plan()
-            kind, pair, idx, toi, _ = self._ccd_candidates(x0, x1)
+            kind, pair, idx, toi, _ = self._ccd_candidates(x0, x1, plane_d0)
             if len(kind) == 0:
                 break
             ee_mask = kind == 1
@@ -1109,7 +1139,8 @@ class ImpulseCollisionHandler:
             x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
             self._narrow.cover(x0[:nv], x1_pred[:nv], COVER_MARGIN * delta, COVER_SLACK * delta, COVER_AHEAD,
                                COVER_AHEAD_LIMIT * delta)
-            kind, pair, idx = self._proximity_rows(x0, x1_pred, delta)
+            plane_d0 = self._plane_distances(x0)
+            kind, pair, idx = self._proximity_rows(x0, x1_pred, delta, plane_d0)
         if len(kind):
             zero = np.zeros(len(kind))
             out, host = geometry(kind, pair, idx, zero, np.zeros(len(kind), dtype=np.int64), X0, inf_p, inf_b)
@@ -1124,7 +1155,7 @@ class ImpulseCollisionHandler:
             X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
             x1 = X1.numpy()
             with paused_tape():  # decisions: off the tape
-                kind, pair, idx, frac, source = self._ccd_candidates(x0, x1)
+                kind, pair, idx, frac, source = self._ccd_candidates(x0, x1, plane_d0)
             if len(kind) == 0:
                 break
             # times off the cubic (start, collinear, advancement) enter as constants

@@ -115,3 +115,18 @@ def test_alternating_arrays_stay_right_on_both_launch_paths():
     wrong = wp.array(rng.normal(size=8), dtype=wp.float32)
     with pytest.raises(RuntimeError, match="dtype"):
         launches.launch("axpy", _axpy, 8, [2.0, 0, wrong, y, out])
+
+
+def test_zero_clears_through_the_host_view_and_is_recorded_by_a_cpu_capture():
+    """zero(): on the CPU the array reads zeros right after; under a CPU graph capture the
+    clearing is recorded (replaying the graph clears the array again)."""
+    from collision.buffers import zero
+
+    counter = wp.array(np.array([5, -3], dtype=np.int32), dtype=wp.int32)
+    zero(counter)
+    np.testing.assert_array_equal(counter.numpy(), [0, 0])
+    with wp.ScopedCapture(device="cpu") as capture:
+        zero(counter)
+    counter.assign(np.array([7, 7], dtype=np.int32))
+    wp.capture_launch(capture.graph)
+    np.testing.assert_array_equal(counter.numpy(), [0, 0])
