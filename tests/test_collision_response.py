@@ -258,3 +258,47 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
     assert count["_init_new"] == 0
     if not differentiable:
         assert count["__init__"] == 0
+
+
+def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
+    """A scene whose broad-phase queries find few candidate pairs (a cloth swinging from two
+    corners over a static box) widens its cover (collision.response.COVER_SCALES): fewer
+    queries, and the end state bit for bit that of a run whose cover keeps its narrowest
+    margin (the contacts do not depend on the cover). A fresh query with many candidates
+    narrows it again."""
+    import collision.response as response
+
+    def run(scales):
+        monkeypatch.setattr(response, "COVER_SCALES", scales)
+        b = ModelBuilder()
+        b.add_cloth_grid((-0.25, 0.0, 0.2), (np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)), 5, 5, 0.1, 0.1, density=0.2,
+                         stretch_stiffness=40.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
+                         pinned=[30, 35])
+        verts, tris = box_mesh(0.1)
+        b.add_static_mesh(verts + np.array([0.0, 0.3, 0.3]), tris)  # in the swing's way
+        model = b.finalize()
+        integ = SemiImplicitIntegrator(model)
+        handler = ImpulseCollisionHandler(model)
+        integ.collision_handler = handler
+        s0, s1 = model.state(), model.state()
+        s0.particle_qd.assign(np.tile([0.0, 1.5, 0.0], (model.particle_count, 1)))  # swinging
+        handler.contacts = 0
+        for _ in range(60):
+            integ.step(s0, s1, 1 / 60, 8)
+            s0, s1 = s1, s0
+            handler.contacts += handler.last_contact_count
+        return s0.particle_q.numpy(), handler
+
+    scales = response.COVER_SCALES
+    wide_q, wide = run(scales)
+    narrow_q, narrow = run((1.0,))
+    np.testing.assert_array_equal(wide_q, narrow_q)
+    assert wide.contacts > 0 and wide.ccd_events > 0  # the cloth hits the box
+    assert wide._cover_scale == len(scales) - 1
+    assert wide._narrow.queries < 0.8 * narrow._narrow.queries, (wide._narrow.queries, narrow._narrow.queries)
+    # a dense query steps the scale back
+    monkeypatch.setattr(response, "COVER_SCALES", scales)
+    monkeypatch.setattr(response, "COVER_DENSE_CANDIDATES", -1)
+    x = wide._narrow.broad_phase.positions[0].numpy()
+    wide._cover(x, x + 1.0, wide.separation)
+    assert wide._cover_scale == len(scales) - 2
