@@ -656,22 +656,24 @@ class ImpulseCollisionHandler:
         (the offset's direction, or for touching pairs the face / edges' normal turned against
         the relative motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the
         velocities ``v-`` of ``state_pred``). ``x0``, ``lever``: the start pose's device arrays
-        (:meth:`_pose`)."""
+        (:meth:`_pose`). Keeps the rows' device arrays for the first solve (``_start_rows``)."""
         c, R = len(kind), self._replay
         put, empty = self._staging.put, self._staging.empty
         out = (empty("geo_toi", c, wp.float64), empty("geo_w", c, wp.vec4d), empty("geo_n", c, wp.vec3d),
                empty("geo_target", c, wp.float64))
         vm_p = state_pred.particle_qd if self.n_particles else R.empty_vec
         vm_b = state_pred.body_qd if self.n_bodies else R.empty_twist
+        idx_w, kind_w = put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32)
         self._launches.launch("start_geometry", contact_geometry_kernel, c, [
-            x0, x0, lever, R.vertex_type, R.vertex_owner, put("geo_idx", idx, wp.vec4i),
-            put("geo_kind", kind, wp.int32),
+            x0, x0, lever, R.vertex_type, R.vertex_owner, idx_w, kind_w,
             # sources 0 (at the start: no root) and detected fractions 0
             self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
             put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), R.planes,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, *out])
+        # the rows as the solve reads them (vertex indices, kinds, weights, normals, targets)
+        self._start_rows = (idx_w, kind_w, out[1], out[2], out[3])
         return host(out[1])[:c].copy(), host(out[2])[:c].copy(), host(out[3])[:c].copy()
 
     def _weights(self, y: np.ndarray, kind: np.ndarray) -> np.ndarray:
@@ -793,16 +795,20 @@ class ImpulseCollisionHandler:
         leaving = at_end & (vn > self._sep_speed)
         return vn, (vn < -eps) | ((vn_path < -eps) & ~leaving)
 
-    def _solve(self, cs: _Contacts, vp, bv, lever: wp.array, inv_inertia_w: wp.array):
+    def _solve(self, cs: _Contacts, vp, bv, lever: wp.array, inv_inertia_w: wp.array, rows=None):
         """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
         updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
         impulses of ``cs``. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row):
         device arrays of the vertices' lever arms (:meth:`_pose`) and the bodies' world inverse
         inertia tensors at the start pose. Its other arrays are the handler's reused buffers (no
-        allocation)."""
+        allocation). ``rows``: device arrays (vertex indices, kinds, weights, normals, targets)
+        that hold the set's rows already (:meth:`_start_geometry`'s for the first set)."""
         if len(cs) == 0:
             return
         put = self._staging.put
+        if rows is None:
+            rows = (put("idx", cs.idx, wp.vec4i), put("kind", cs.kind, wp.int32), put("w", cs.w, wp.vec4d),
+                    put("n", cs.n, wp.vec3d), put("target", cs.target, wp.float64))
         vp_w = put("vp", vp, wp.vec3d)
         lin_w = put("lin", bv[:, 3:6], wp.vec3d)
         ang_w = put("ang", bv[:, 0:3], wp.vec3d)
@@ -810,13 +816,9 @@ class ImpulseCollisionHandler:
         jt = put("jt", cs.jt, wp.vec3d)
         sweeps = self._staging.empty("sweeps", 1, wp.int32)
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        idx_w, kind_w, w_w, n_w, target_w = rows
         self._launches.launch("solve", solve_contacts_kernel, 1, [
-            len(cs),
-            put("idx", cs.idx, wp.vec4i),
-            put("w", cs.w, wp.vec4d),
-            put("n", cs.n, wp.vec3d),
-            put("target", cs.target, wp.float64),
-            put("edge_edge", cs.edge_edge, wp.int32),
+            len(cs), idx_w, w_w, n_w, target_w, kind_w,
             self._replay.vertex_type, self._replay.vertex_owner,
             lever, 0,  # indexed by vertex
             self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
@@ -977,7 +979,7 @@ class ImpulseCollisionHandler:
         if len(kind):
             w, n, target = self._start_geometry(kind, pair, idx, x0_w, lever0_w, state_pred, h)
             cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target, copy=False)  # fresh arrays
-            self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
+            self._solve(cs, vp, bv, lever0_w, inv_inertia_w, self._start_rows)  # the same rows, on the device
 
         # 2-5. CCD rounds on the planned motion
         failsafe = False

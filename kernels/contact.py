@@ -101,6 +101,14 @@ def pair_proximity_kernel(
 
 
 @wp.func
+def _is_edge_edge(kind: wp.int32) -> int:
+    """1 for an edge-edge pair kind (1), else 0 (vertex-face 0, vertex-plane 2)."""
+    if kind == 1:
+        return 1
+    return 0
+
+
+@wp.func
 def _side_begin_end(edge_edge: int, side: int) -> wp.vec2i:
     """Vertex slots [begin, end) of side A (0) or B (1) of a contact."""
     split = 1
@@ -149,7 +157,7 @@ def solve_contacts_kernel(
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
     targets: wp.array(dtype=wp.float64),
-    edge_edge: wp.array(dtype=wp.int32),
+    kinds: wp.array(dtype=wp.int32),
     vertex_type: wp.array(dtype=wp.int32),
     vertex_owner: wp.array(dtype=wp.int32),
     lever_arm: wp.array(dtype=wp.vec3d),
@@ -177,7 +185,8 @@ def solve_contacts_kernel(
 
     Contacts ``0 .. count - 1`` are used (the arrays may be longer: reused buffers). Contact ``c`` joins vertices ``pairs[c]`` with signed weights ``weights[c]`` (side A: slot 0
     for vertex-face, slots 0-1 for edge-edge, weights summing to 1; side B the rest, summing to
-    -1); its normal relative velocity ``sum_k w_k v_k . n`` must end at least ``targets[c]``.
+    -1; ``kinds[c]``: 0 vertex-face, 1 edge-edge, 2 vertex-plane); its normal relative velocity
+    ``sum_k w_k v_k . n`` must end at least ``targets[c]``.
     Vertex types: 0 particle (owner = particle index), 1 rigid (owner = body, lever arm
     ``lever_arm[vertex - shape_offset]`` from the centre of mass, world frame), 2 static. The
     accumulated normal impulse stays >= 0 and the friction impulse within ``friction`` times it.
@@ -195,7 +204,7 @@ def solve_contacts_kernel(
         q = pairs[c]
         w = weights[c]
         n = normals[c]
-        ee = edge_edge[c]
+        ee = _is_edge_edge(kinds[c])
         k_eff = zero
         slot_particle = wp.vec4i(-1, -1, -1, -1)
         side_body = wp.vec2i(-1, -1)
@@ -244,7 +253,7 @@ def solve_contacts_kernel(
             p = contact_particles[c]
             bodies = contact_bodies[c]
             body_weight = contact_body_weight[c]
-            split = _side_begin_end(edge_edge[c], 0)[1]  # side B's first slot
+            split = _side_begin_end(_is_edge_edge(kinds[c]), 0)[1]  # side B's first slot
             # the relative velocity in the order side A's particles, side A's body, side B's
             # particles, side B's body (the slots, unrolled)
             vrel = wp.vec3d(zero, zero, zero)
