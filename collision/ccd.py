@@ -165,8 +165,15 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
 _NONE = tuple(a for a in (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)))
 _NO_CCD_HITS = (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0, dtype=np.int64),
                 np.zeros((0, 4), dtype=np.int64))
-for _a in _NONE + _NO_CCD_HITS:
+_ONES3 = np.ones(3)
+for _a in _NONE + _NO_CCD_HITS + (_ONES3,):
     _a.flags.writeable = False
+
+
+def _same_bytes(a, b: np.ndarray) -> bool:
+    """Whether ``a`` holds exactly the float64 values of ``b`` (bit for bit: the same input)."""
+    a = np.asarray(a, dtype=np.float64)
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
 class CandidateNarrowPhase:
@@ -366,7 +373,7 @@ class CandidateNarrowPhase:
         c = self._cover
         # from the positions of the last near() with motion radii, in the cover it used
         from_near = r is not None and t == 0.0 and c is r[0] and c[4] == self.broad_phase.query_count \
-            and np.shape(x1) == c[5].shape and np.array_equal(x0, r[1])
+            and np.shape(x1) == c[5].shape and _same_bytes(x0, r[1])
         if from_near and self._x0_holds_reach and self._outside(x1, x1, c) <= self.COVER_SAFETY * c[3]:
             # the start was covered there with less room and is on the device already: only the
             # end is checked and uploaded (_candidates' cover test otherwise)
@@ -376,7 +383,7 @@ class CandidateNarrowPhase:
             buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
         if from_near and self._cover is r[0] and buffers is r[0][0]:
             step = np.subtract(x1, x0)
-            if (np.einsum("ij,ij->i", step, step) <= r[2]).all():
+            if (np.square(step) @ _ONES3 <= r[2]).all():
                 buffers = r[3]
                 self.reach_calls += 1
         self.tested += buffers[1] + buffers[3]

@@ -341,6 +341,8 @@ def _read_only(*arrays):
     return arrays
 
 
+_ONES3 = _read_only(np.ones(3))[0]  # row sums of (C, 3) arrays by a product (einsum parses its subscripts per call)
+
 # no CCD hit (ImpulseCollisionHandler._ccd_candidates): kind, pair, vertex indices, time, source
 _NO_HITS = _read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
                       np.zeros(0), np.zeros(0, dtype=np.int64))
@@ -635,7 +637,7 @@ class ImpulseCollisionHandler:
         radius = None
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
             step = x1_pred[:n] - x0[:n]
-            radius = np.sqrt(np.einsum("ij,ij->i", step, step)) + CCD_REACH_SLACK * delta
+            radius = np.sqrt(np.square(step) @ _ONES3) + CCD_REACH_SLACK * delta
             if not np.isfinite(radius).all():  # a step past 1e154 m overflows: test every candidate
                 radius = None
         kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
