@@ -46,6 +46,13 @@ def upload(dst: wp.array, src: np.ndarray) -> wp.array:
     return dst
 
 
+def read_only(*arrays: np.ndarray) -> tuple:
+    """``arrays``, made read-only (results shared between calls: writing one raises)."""
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
 def zero(arr: wp.array) -> wp.array:
     """Sets ``arr`` to zeros: on the CPU through its host view (a counter reset per launch costs
     a microsecond less than ``zero_()``), except under a CPU graph capture, which must record it."""
@@ -137,7 +144,11 @@ class RecordedLaunches:
     on every launch (about 5-8 microseconds for a collision kernel's 15-20 arguments, a substep
     replays about a dozen). The structure is the one Warp's CPU ``invoke`` builds (the kernel's
     arguments in order, each of its packed type); under a CPU graph capture, and for launches in
-    blocks, the command's own ``launch()`` runs instead.
+    blocks, the command's own ``launch()`` runs instead. An array argument replaced by a plain
+    array of the same dtype, dimensions and device (the states a stepping loop alternates) only
+    has its descriptor written into that structure (Warp's checks of it cost microseconds, and
+    the array it replaces passed them); the command's own copy of such arguments is brought up to
+    date before its ``launch()`` runs or its structure is rebuilt.
     """
 
     def __init__(self, device) -> None:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, upload, zero
+from collision.buffers import RecordedLaunches, host, read_only, upload, zero
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
@@ -158,16 +158,13 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
         toi = toi.astype(np.float64)
     return hit.astype(bool), toi, source
 
-
-
-# no hit of _collect (kind, pair, order) / of CandidateNarrowPhase.ccd (kind, pair, time, source,
-# vertices): read-only, shared
-_NONE = tuple(a for a in (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)))
-_NO_CCD_HITS = (np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0, dtype=np.int64),
-                np.zeros((0, 4), dtype=np.int64))
-_ONES3 = np.ones(3)
-for _a in _NONE + _NO_CCD_HITS + (_ONES3,):
-    _a.flags.writeable = False
+# no hit (shared, read only): _collect's (kind, pair, order), CandidateNarrowPhase.ccd's (kind,
+# pair, time, source, vertices)
+_NONE = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64))
+_NO_CCD_HITS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0),
+                         np.zeros(0, dtype=np.int64), np.zeros((0, 4), dtype=np.int64))
+ONES3 = read_only(np.ones(3))[0]
+"""Row sums of (N, 3) arrays as a product ``a @ ONES3`` (``einsum`` parses its subscripts on every call)."""
 
 
 def _same_bytes(a, b: np.ndarray) -> bool:
@@ -383,7 +380,7 @@ class CandidateNarrowPhase:
             buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
         if from_near and self._cover is r[0] and buffers is r[0][0]:
             step = np.subtract(x1, x0)
-            if (np.square(step) @ _ONES3 <= r[2]).all():
+            if (np.square(step) @ ONES3 <= r[2]).all():
                 buffers = r[3]
                 self.reach_calls += 1
         self.tested += buffers[1] + buffers[3]
@@ -420,9 +417,12 @@ class CandidateNarrowPhase:
             the second's, weights (K, 4): the closest points' signed weights, side A positive,
             side B negative (:func:`kernels.contact.pair_weights`), vertices (K, 4) int64: the
             pairs' vertex indices, vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0,
-            b1)``).
+            b1)``). Without a pair the arrays are shared read-only empties.
         """
         self._reach = None
+        max_distance = float(max_distance)
+        if not (np.isfinite(max_distance) and max_distance >= 0.0):
+            raise ValueError(f"max_distance: expected a finite distance >= 0, got {max_distance!r}")
         if motion_radius is not None:
             motion_radius = np.asarray(motion_radius, dtype=np.float64)
             if motion_radius.shape != (self._radius.shape[0],):

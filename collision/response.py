@@ -55,8 +55,8 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from collision.buffers import RecordedLaunches, Staging, host, upload
-from collision.ccd import CandidateNarrowPhase
+from collision.buffers import RecordedLaunches, Staging, host, read_only, upload
+from collision.ccd import ONES3, CandidateNarrowPhase
 from kernels.variants import check_settings as check_ccd_settings
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
@@ -333,20 +333,11 @@ class _CallContacts:
 
 
 _NO_CONTACTS = _CallContacts()
-
-
-def _read_only(*arrays):
-    for a in arrays:
-        a.flags.writeable = False
-    return arrays
-
-
-_ONES3 = _read_only(np.ones(3))[0]  # row sums of (C, 3) arrays by a product (einsum parses its subscripts per call)
+"""The record of a call without contacts (shared: a record is not changed after it is made)."""
 
 # no CCD hit (ImpulseCollisionHandler._ccd_candidates): kind, pair, vertex indices, time, source
-_NO_HITS = _read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
-                      np.zeros(0), np.zeros(0, dtype=np.int64))
-"""The record of a call without contacts (shared: a record is not changed after it is made)."""
+_NO_HITS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
+                     np.zeros(0), np.zeros(0, dtype=np.int64))
 
 
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
@@ -502,7 +493,7 @@ class ImpulseCollisionHandler:
         self._particle_slot = np.where(self.vertex_type == _PARTICLE, self.vertex_owner, self.n_particles)
         self._body_slot = np.where(self.vertex_type == _BODY, self.vertex_owner, self.n_bodies)
         # the contact times of a plan that no contact changed (read only)
-        self._inf_p, self._inf_b = _read_only(np.full(self.n_particles, np.inf), np.full(self.n_bodies, np.inf))
+        self._inf_p, self._inf_b = read_only(np.full(self.n_particles, np.inf), np.full(self.n_bodies, np.inf))
         self.body_inv_mass = np.zeros(0)
         self._body_mass = np.zeros(0)
         if self.n_bodies:
@@ -637,7 +628,7 @@ class ImpulseCollisionHandler:
         radius = None
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
             step = x1_pred[:n] - x0[:n]
-            radius = np.sqrt(np.square(step) @ _ONES3) + CCD_REACH_SLACK * delta
+            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
             if not np.isfinite(radius).all():  # a step past 1e154 m overflows: test every candidate
                 radius = None
         kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here

@@ -1162,42 +1162,12 @@ def time_of_impact_bodies_kernel(
     q1[b] = time_of_impact_pose(q0[b], v_minus[b], v_plus[b], ts, h)
 
 
-@wp.kernel
-def planned_particles_kernel(
-    x0: wp.array(dtype=wp.vec3d),
-    x_pred: wp.array(dtype=wp.vec3d),
-    v_minus: wp.array(dtype=wp.vec3d),
-    v_plus: wp.array(dtype=wp.vec3d),
-    owner_time: wp.array(dtype=wp.float64),
-    h: wp.float64,
-    x1: wp.array(dtype=wp.vec3d),
-):
-    """The Gauss-Seidel response's plan (not taped): :func:`time_of_impact_position` of particle
-    ``tid`` at its earliest contact time ``owner_time`` [s] (inf: none, the prediction stays; 0
-    for an impact zone's)."""
-    i = wp.tid()
-    x1[i] = planned_position(x0[i], x_pred[i], v_minus[i], v_plus[i], owner_time[i], h)
-
-
-@wp.kernel
-def planned_bodies_kernel(
-    q0: wp.array(dtype=wp.transformd),
-    q_pred: wp.array(dtype=wp.transformd),
-    v_minus: wp.array(dtype=wp.spatial_vectord),
-    v_plus: wp.array(dtype=wp.spatial_vectord),
-    owner_time: wp.array(dtype=wp.float64),
-    h: wp.float64,
-    q1: wp.array(dtype=wp.transformd),
-):
-    """The same for body ``tid`` (:func:`time_of_impact_pose`)."""
-    b = wp.tid()
-    q1[b] = planned_pose(q0[b], q_pred[b], v_minus[b], v_plus[b], owner_time[b], h)
-
-
 @wp.func
 def planned_position(x0: wp.vec3d, x_pred: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64,
                      h: wp.float64) -> wp.vec3d:
-    """:func:`planned_particles_kernel`'s end of one particle."""
+    """The Gauss-Seidel response's plan (not taped) of one particle: :func:`time_of_impact_position`
+    at its earliest contact time ``ts`` [s] (inf: none, the prediction ``x_pred`` stays; 0 for
+    an impact zone's)."""
     if wp.isinf(ts):
         return x_pred
     return time_of_impact_position(x0, v_minus, v_plus, ts, h)
@@ -1206,7 +1176,7 @@ def planned_position(x0: wp.vec3d, x_pred: wp.vec3d, v_minus: wp.vec3d, v_plus: 
 @wp.func
 def planned_pose(q0: wp.transformd, q_pred: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord,
                  ts: wp.float64, h: wp.float64) -> wp.transformd:
-    """:func:`planned_bodies_kernel`'s end pose of one body."""
+    """The same for a body's pose (:func:`time_of_impact_pose`)."""
     if wp.isinf(ts):
         return q_pred
     return time_of_impact_pose(q0, v_minus, v_plus, ts, h)
@@ -1235,7 +1205,7 @@ def planned_substep_kernel(
     x1: wp.array(dtype=wp.vec3d),
 ):
     """The Gauss-Seidel response's plan in one launch: the particles' ends
-    (:func:`planned_particles_kernel`) in the first ``P`` threads, the bodies' (:func:`planned_bodies_kernel`)
+    (:func:`planned_position`) in the first ``P`` threads, the bodies' (:func:`planned_pose`)
     in the next ``B``, then the vertices posed at those ends (:func:`pose_vertices_kernel`), each
     vertex thread working out its owner's end itself (no thread waits for another's).
     Launched over ``P + B + vertices`` threads (``P``, ``B``: ``particle_count``,

@@ -527,8 +527,17 @@ def test_ccd_after_near_with_motion_radii_tests_only_reachable_pairs_with_the_sa
         check(y1, start, thickness)
         assert narrow.reach_calls == calls
         assert narrow.tested - tested == candidates
+    # a call from another start refills the start's device buffer: a later call from near()'s
+    # start must not take that buffer for its positions (it still keeps to the kept pairs)
+    check(x1, x0 + 0.5 * (x1 - x0))
+    calls = narrow.reach_calls
+    assert len(check(x1)[0]) > 0
+    assert narrow.reach_calls == calls + 1
     with pytest.raises(ValueError, match="motion_radius"):
         narrow.near(x0, 0.001, radius[:-1])
+    for bad_distance in (-1e-3, np.nan, np.inf):
+        with pytest.raises(ValueError, match="max_distance"):
+            narrow.near(x0, bad_distance, radius)
     bad = radius.copy()
     bad[2] = np.nan
     with pytest.raises(ValueError, match="motion_radius"):
