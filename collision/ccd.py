@@ -430,7 +430,7 @@ class CandidateNarrowPhase:
             # NaN fails the first comparison, inf the second
             if len(motion_radius) and not (motion_radius.min() >= 0.0 and np.isfinite(motion_radius.max())):
                 raise ValueError("motion_radius: radii must be finite and >= 0")
-        buffers, xa, _ = self._candidates(x, x, float(max_distance), end_moves=False)
+        buffers, xa, _ = self._candidates(x, x, max_distance, end_moves=False)
         radius = self._no_radius
         if motion_radius is not None and self._kernels is _k and self._cover is not None \
                 and buffers is self._cover[0]:
@@ -444,7 +444,7 @@ class CandidateNarrowPhase:
 
         def launch(vf, n_vf, ee, n_ee):
             self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
-                                  [n_vf, vf, ee, xa, self._faces, self._edges, float(max_distance),
+                                  [n_vf, vf, ee, xa, self._faces, self._edges, max_distance,
                                    self._counter, self._pairs, self._kind, self._offset, self._weights,
                                    self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
 

@@ -347,6 +347,13 @@ def body_lever(X: wp.transformd, local: wp.vec3d) -> wp.vec3d:
     return wp.quat_rotate(wp.transform_get_rotation(X), local)
 
 
+@wp.func
+def body_point(X: wp.transformd, local: wp.vec3d) -> wp.vec3d:
+    """World position of a body-frame point ``local`` of a body at pose ``X``: its centre of
+    mass plus :func:`body_lever`."""
+    return wp.transform_get_translation(X) + body_lever(X, local)
+
+
 @wp.kernel
 def pose_substep_kernel(
     particle_q0: wp.array(dtype=wp.vec3d),
@@ -385,7 +392,7 @@ def pose_substep_kernel(
         r = body_lever(body_q0[o], local[v])
         x0[v] = wp.transform_get_translation(body_q0[o]) + r
         lever0[v] = r
-        x1[v] = wp.transform_get_translation(body_q1[o]) + body_lever(body_q1[o], local[v])
+        x1[v] = body_point(body_q1[o], local[v])
     else:
         x0[v] = local[v]
         lever0[v] = zero
@@ -1228,8 +1235,8 @@ def planned_substep_kernel(
         x1[v] = planned_position(particle_q0[o], particle_q_pred[o], particle_v_minus[o], particle_v_plus[o],
                                  particle_time[o], h)
     elif kind == VERTEX_BODY:
-        X = planned_pose(body_q0[o], body_q_pred[o], body_v_minus[o], body_v_plus[o], body_time[o], h)
-        x1[v] = wp.transform_get_translation(X) + body_lever(X, local[v])
+        x1[v] = body_point(planned_pose(body_q0[o], body_q_pred[o], body_v_minus[o], body_v_plus[o], body_time[o], h),
+                           local[v])
     else:
         x1[v] = local[v]
 
