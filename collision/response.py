@@ -174,21 +174,23 @@ class _Contacts:
             ``(kind, a, b)`` is keyed by the one integer ``(kind key_base + a) key_base + b``.
     """
 
+    # the empty set's rows: shared read-only arrays (every substep makes a set; the first add()
+    # replaces them all, later ones concatenate to them or write into the set's own rows)
+    key, idx, kind = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64))
+    w, n = read_only(np.zeros((0, 4)), np.zeros((0, 3)))
+    toi, target, jn, jt = read_only(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+    edge_edge, timed = read_only(np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
+
     def __init__(self, key_base: int) -> None:
+        # rows (see the class attributes' empties): key: the pair of each row as one integer
+        # (see _keys); idx (C, 4) vertex indices (CCD order); kind: 0 vertex-face, 1 edge-edge,
+        # 2 vertex-plane; w (C, 4) weights: side A positive (sum 1), side B negative (sum -1);
+        # n (C, 3): unit normal from side B to side A; toi: time of impact in the substep [s];
+        # target: minimum normal relative velocity after the impulse [m/s]; timed: the time comes
+        # from a root or a plane crossing, so the replay differentiates it (not a constant:
+        # proximity, collinear or advancement detections); jn, jt (C, 3): accumulated normal /
+        # friction impulses [N s]
         self.key_base = int(key_base)
-        self.key = np.zeros(0, dtype=np.int64)  # the pair of each row as one integer (see _keys)
-        self.idx = np.zeros((0, 4), dtype=np.int64)  # vertex indices (CCD order)
-        self.kind = np.zeros(0, dtype=np.int64)  # 0 vertex-face, 1 edge-edge, 2 vertex-plane
-        self.w = np.zeros((0, 4))  # weights: side A positive (sum 1), side B negative (sum -1)
-        self.n = np.zeros((0, 3))  # unit normal from side B to side A
-        self.toi = np.zeros(0)  # time of impact in the substep [s]
-        self.target = np.zeros(0)  # minimum normal relative velocity after the impulse [m/s]
-        self.edge_edge = np.zeros(0, dtype=bool)
-        # the time comes from a root or a plane crossing, so the replay differentiates it (not a
-        # constant: proximity, collinear or advancement detections)
-        self.timed = np.zeros(0, dtype=bool)
-        self.jn = np.zeros(0)  # accumulated normal impulse [N s]
-        self.jt = np.zeros((0, 3))  # accumulated friction impulse [N s]
 
     def __len__(self) -> int:
         return len(self.toi)
@@ -230,11 +232,14 @@ class _Contacts:
             return found
         return found & (self.toi[np.maximum(row, 0)] >= end) & (np.asarray(toi) >= end)
 
-    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None, copy=True):
+    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None, copy=True,
+            distinct=False):
         """Adds contacts, pairs distinct (a pair already present takes the new normal, weights
         and target, and the earlier of the two times). ``timed`` (C,) bool: the time is
         differentiated by the replay (default: none is). ``copy=False``: the set may keep the
-        arrays given (the caller's own, not used after).
+        arrays given (the caller's own, not used after). ``distinct=True``: the caller's rows
+        are distinct pairs by construction (the proximity pass: each candidate pair once, each
+        vertex-plane pair once), so the check for a repeated pair is skipped.
 
         Returns:
             (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
@@ -242,7 +247,7 @@ class _Contacts:
             kept its old time / target (the decisions the taped replay repeats).
         """
         keys = self._keys(kind, pair)
-        if len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
+        if not distinct and len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
             raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
         before = len(self.toi)
         if before == 0:
@@ -295,10 +300,10 @@ class _CallContacts:
 
     def __init__(self, cs=None, x0=None, x1=None, h=1.0, vertex_type=None) -> None:
         self._active = (cs.jn > 0) if cs is not None and len(cs) else np.zeros(0, dtype=bool)
-        if self._active.any():
+        self.count = int(np.count_nonzero(self._active))
+        if self.count:
             x0, x1 = x0.copy(), x1.copy()
         self._args = (cs, x0, x1, h, vertex_type)
-        self.count = int(self._active.sum())
         self._contacts = None
         self._body_particles = None
 
@@ -339,6 +344,12 @@ _NO_CONTACTS = _CallContacts()
 _NO_HITS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
                      np.zeros(0), np.zeros(0, dtype=np.int64))
 
+
+# no vertex near a plane (ImpulseCollisionHandler._plane_proximity): kind, pair, vertex indices,
+# distance; and an empty index array
+_NO_PLANE_ROWS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64),
+                           np.zeros((0, 4), dtype=np.int64), np.zeros(0))
+_NONE_INDEX = _NO_PLANE_ROWS[0]
 
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
 """Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
@@ -629,11 +640,12 @@ class ImpulseCollisionHandler:
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
             step = x1_pred[:n] - x0[:n]
             radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
-            if not np.isfinite(radius).all():  # a step past 1e154 m overflows: test every candidate
+            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
                 radius = None
         kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
         near = row_norms(off) < delta
-        kind, pair, idx = kind[near], pair[near], idx[near]
+        if not near.all():  # the kernel's test had a hair of slack
+            kind, pair, idx = kind[near], pair[near], idx[near]
         if plane_d0 is None:
             return kind, pair, idx
         plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(plane_d0, delta)
@@ -691,6 +703,8 @@ class ImpulseCollisionHandler:
         # may round to a hair below: such a particle is no contact (without the slack a resting
         # cloth joined the solve on every substep, all of it in one replayed system)
         v, k = np.nonzero(dist < self._plane_threshold * delta)
+        if not len(v):  # the common case: nothing near a plane
+            return _NO_PLANE_ROWS
         return self._plane_rows(verts[v], k) + (dist[v, k],)
 
     def _plane_rows(self, vertex: np.ndarray, plane: np.ndarray):
@@ -724,7 +738,8 @@ class ImpulseCollisionHandler:
             verts = self._plane_vertex_ids
             d0 = plane_d0
             d1 = self._plane_distances(x1)
-            v, k = np.nonzero((d1 < 0.0) & (d1 < d0))
+            behind = d1 < 0.0
+            v, k = np.nonzero(behind & (d1 < d0)) if behind.any() else (_NONE_INDEX, _NONE_INDEX)
             if len(v):
                 kind, pair, idx = self._plane_rows(verts[v], k)
                 kinds.append(kind)
@@ -971,7 +986,7 @@ class ImpulseCollisionHandler:
         kind, pair, idx = self._proximity_rows(x0, x1_pred, delta, plane_d0)
         if len(kind):
             w, n, target = self._start_geometry(kind, pair, idx, x0_w, lever0_w, state_pred, h)
-            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target, copy=False)  # fresh arrays
+            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target, copy=False, distinct=True)  # fresh arrays
             self._solve(cs, vp, bv, lever0_w, inv_inertia_w, self._start_rows)  # the same rows, on the device
 
         # 2-5. CCD rounds on the planned motion
