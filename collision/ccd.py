@@ -272,7 +272,7 @@ class CandidateNarrowPhase:
         x1 = np.asarray(x1, dtype=np.float64)
         c = self._cover
         if slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count \
-                and c[5].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
+                and c[1].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
             self.kept_covers += 1
             return
         if ahead > 0.0 and ahead_limit > 0.0:  # the query covers the motion continued past x1
@@ -281,7 +281,7 @@ class CandidateNarrowPhase:
         self.queries += 1
         # the covered motion's vertex boxes (and scratch for _outside)
         self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count,
-                       np.empty_like(x0))
+                       np.empty((3,) + x0.shape))
 
     def covered_candidates(self) -> int:
         """Candidate pairs of the current cover (0 without one)."""
@@ -293,12 +293,17 @@ class CandidateNarrowPhase:
         """How far (largest coordinate) the ends ``x0``, ``x1`` of the vertices' motion lie
         outside the boxes of their covered motion (0 inside; exact: a covered end gives 0)."""
         lo, hi, scratch = cover[1], cover[2], cover[5]
+        if not len(x0):
+            return 0.0
+        if x1 is x0:
+            low = high = x0
+        else:
+            # lo - min(x0, x1) is max(lo - x0, lo - x1) exactly (rounding is monotone); NaN stays
+            low, high = np.minimum(x0, x1, out=scratch[0]), np.maximum(x0, x1, out=scratch[1])
         out = 0.0
-        for x in ((x0,) if x1 is x0 else (x0, x1)):
-            if len(x):
-                for gap in (np.subtract(lo, x, out=scratch).max(), np.subtract(x, hi, out=scratch).max()):
-                    if not gap <= out:  # NaN is never covered: the fresh query refuses it
-                        out = float(gap) if gap == gap else np.inf
+        for gap in (np.subtract(lo, low, out=scratch[2]).max(), np.subtract(high, hi, out=scratch[2]).max()):
+            if not gap <= out:  # NaN is never covered: the fresh query refuses it
+                out = float(gap) if gap == gap else np.inf
         return out
 
     def _candidates(self, x0, x1, inflation: float, end_moves: bool):
@@ -310,7 +315,7 @@ class CandidateNarrowPhase:
         # its vertices' boxes' hull, so it grows by at most that on each side); and nobody else
         # may have refilled the broad phase's buffers
         if c is not None and inflation <= c[3] and c[4] == self.broad_phase.query_count \
-                and np.shape(x0) == c[5].shape and np.shape(x1) == c[5].shape:
+                and np.shape(x0) == c[1].shape and np.shape(x1) == c[1].shape:
             if self._outside(x0, x1 if end_moves else x0, c) <= self.COVER_SAFETY * (c[3] - inflation):
                 self.reuses += 1
                 self._x0_holds_reach = False
@@ -370,7 +375,7 @@ class CandidateNarrowPhase:
         c = self._cover
         # from the positions of the last near() with motion radii, in the cover it used
         from_near = r is not None and t == 0.0 and c is r[0] and c[4] == self.broad_phase.query_count \
-            and np.shape(x1) == c[5].shape and _same_bytes(x0, r[1])
+            and np.shape(x1) == c[1].shape and _same_bytes(x0, r[1])
         if from_near and self._x0_holds_reach and self._outside(x1, x1, c) <= self.COVER_SAFETY * c[3]:
             # the start was covered there with less room and is on the device already: only the
             # end is checked and uploaded (_candidates' cover test otherwise)

@@ -673,7 +673,9 @@ class ImpulseCollisionHandler:
             x0, x0, lever, R.vertex_type, R.vertex_owner, idx_w, kind_w,
             # sources 0 (at the start: no root) and detected fractions 0
             self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
-            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32), R.planes,
+            # the planes of the vertex-plane rows (the last rows, if any; 0 elsewhere, unused)
+            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32) if kind[-1] == 2
+            else self._staging.zeros("int", c, wp.int32), R.planes,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, *out])
@@ -817,9 +819,10 @@ class ImpulseCollisionHandler:
         if rows is None:
             rows = (put("idx", cs.idx, wp.vec4i), put("kind", cs.kind, wp.int32), put("w", cs.w, wp.vec4d),
                     put("n", cs.n, wp.vec3d), put("target", cs.target, wp.float64))
-        vp_w = put("vp", vp, wp.vec3d)
-        lin_w = put("lin", bv[:, 3:6], wp.vec3d)
-        ang_w = put("ang", bv[:, 0:3], wp.vec3d)
+        P, B, C = len(vp), len(bv), len(cs)
+        vp_w = put("vp", vp, wp.vec3d) if P else self._replay.empty_vec
+        lin_w, ang_w = (put("lin", bv[:, 3:6], wp.vec3d), put("ang", bv[:, 0:3], wp.vec3d)) if B else \
+            (self._replay.empty_vec, self._replay.empty_vec)
         jn = put("jn", cs.jn, wp.float64)
         jt = put("jt", cs.jt, wp.vec3d)
         sweeps = self._staging.empty("sweeps", 1, wp.int32)
@@ -839,7 +842,6 @@ class ImpulseCollisionHandler:
             self._staging.empty("contact_lever", 2 * len(cs), wp.vec3d),
             vp_w, lin_w, ang_w, jn, jt, sweeps,
         ])
-        P, B, C = len(vp), len(bv), len(cs)
         if P:
             vp[:] = host(vp_w)[:P]
         if B:
