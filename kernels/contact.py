@@ -1216,7 +1216,9 @@ def planned_substep_kernel(
     in the next ``B``, then the vertices posed at those ends (:func:`pose_vertices_kernel`), each
     vertex thread working out its owner's end itself (no thread waits for another's).
     Launched over ``P + B + vertices`` threads (``P``, ``B``: ``particle_count``,
-    ``body_count``)."""
+    ``body_count``), or over ``P + B`` for the ends alone (the caller then poses the vertices
+    from them, :func:`pose_vertices_kernel`: bodies with many vertices would otherwise
+    integrate their pose once per vertex)."""
     i = wp.tid()
     P = particle_count
     B = body_count
