@@ -624,6 +624,42 @@ def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh
         narrow.near(np.where(np.arange(len(far))[:, None] == 2, np.nan, far), 0.01)
 
 
+def test_cover_outside_distance_is_exact_per_end_and_never_covers_nan():
+    """The cover test's distance of a motion's ends outside the covered boxes is the largest of
+    ``lo - x`` and ``x - hi`` over both ends and all coordinates, bit for bit (it is computed
+    from ``min(x0, x1)`` and ``max(x0, x1)``, which must not round differently), 0 for ends
+    inside or on the boxes, and inf for a NaN end."""
+    from collision.ccd import CandidateNarrowPhase
+
+    rng = np.random.default_rng(11)
+    n = 200
+    a, b = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    cover = (None, lo, hi, 0.1, 0, np.empty((3, n, 3)))
+    outside = CandidateNarrowPhase._outside
+
+    def reference(*ends):
+        return max(0.0, *(float(np.max(lo - x)) for x in ends), *(float(np.max(x - hi)) for x in ends))
+
+    inside = lo + rng.uniform(0.0, 1.0, size=(n, 3)) * (hi - lo)
+    assert outside(inside, inside, cover) == 0.0
+    assert outside(lo.copy(), hi.copy(), cover) == 0.0  # ends on the boxes' faces
+    on_faces = np.where(rng.uniform(size=(n, 3)) < 0.5, lo, hi)
+    for scale in (1e-12, 1e-3, 1.0, 1e6):
+        # ends around the boxes' faces: about half the coordinates just outside
+        x0 = on_faces + scale * rng.normal(size=(n, 3))
+        x1 = on_faces + scale * rng.normal(size=(n, 3))
+        assert outside(x0, x1, cover) == reference(x0, x1) > 0.0
+        assert outside(x0, x0, cover) == reference(x0)
+        assert outside(x1, x0, cover) == reference(x0, x1)
+    bad = inside.copy()
+    bad[7, 2] = np.nan
+    assert outside(inside, bad, cover) == np.inf
+    assert outside(bad, bad, cover) == np.inf
+    empty = (None, lo[:0], hi[:0], 0.1, 0, np.empty((3, 0, 3)))
+    assert outside(lo[:0], hi[:0], empty) == 0.0
+
+
 def test_cover_continued_ahead_serves_the_next_substeps_of_steady_motion_with_fresh_hits():
     """cover(..., ahead, ahead_limit) queries each vertex's motion continued ``ahead`` more
     substeps (clipped to ``ahead_limit`` per coordinate): the following substeps of the same
