@@ -174,8 +174,8 @@ class _Contacts:
             ``(kind, a, b)`` is keyed by the one integer ``(kind key_base + a) key_base + b``.
     """
 
-    # the empty set's rows: shared read-only arrays (every substep makes a set; the first add()
-    # replaces them all, later ones concatenate to them or write into the set's own rows)
+    # the empty set's rows: shared read-only arrays (every substep makes a set; its first add()
+    # replaces them all, so later ones only concatenate to or write into the set's own rows)
     key, idx, kind = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64))
     w, n = read_only(np.zeros((0, 4)), np.zeros((0, 3)))
     toi, target, jn, jt = read_only(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
@@ -638,7 +638,8 @@ class ImpulseCollisionHandler:
         ``plane_d0``: :meth:`_plane_distances` of ``x0``.
 
         Returns:
-            (kind (C,), pair (C, 2), vertex indices (C, 4)).
+            (kind (C,), pair (C, 2), vertex indices (C, 4)): the mesh pairs (kinds 0, 1) first,
+            then the vertex-plane ones (kind 2; :meth:`_start_geometry` relies on the order).
         """
         n = self.n_vertices
         radius = None
@@ -678,7 +679,7 @@ class ImpulseCollisionHandler:
             x0, x0, lever, R.vertex_type, R.vertex_owner, idx_w, kind_w,
             # sources 0 (at the start: no root) and detected fractions 0
             self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
-            # the planes of the vertex-plane rows (the last rows, if any; 0 elsewhere, unused)
+            # the planes of the vertex-plane rows (_proximity_rows puts them last; 0 elsewhere, unused)
             put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32) if kind[-1] == 2
             else self._staging.zeros("int", c, wp.int32), R.planes,
             vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
@@ -825,6 +826,8 @@ class ImpulseCollisionHandler:
             rows = (put("idx", cs.idx, wp.vec4i), put("kind", cs.kind, wp.int32), put("w", cs.w, wp.vec4d),
                     put("n", cs.n, wp.vec3d), put("target", cs.target, wp.float64))
         P, B, C = len(vp), len(bv), len(cs)
+        # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
+        # never writes the shared zero input passed for their velocities
         vp_w = put("vp", vp, wp.vec3d) if P else self._replay.empty_vec
         lin_w, ang_w = (put("lin", bv[:, 3:6], wp.vec3d), put("ang", bv[:, 0:3], wp.vec3d)) if B else \
             (self._replay.empty_vec, self._replay.empty_vec)
