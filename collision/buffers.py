@@ -225,3 +225,14 @@ def _cpu_capture_active(device) -> bool:
     runtime = wp._src.context.runtime
     capture = getattr(runtime, "_apic_capture", None) if runtime is not None else None
     return capture is not None and capture.device == device
+
+
+def copy_rows(dst: wp.array, src: wp.array, n: int) -> wp.array:
+    """Copies the first ``n`` rows of ``src`` into ``dst`` (same dtype) and returns ``dst``: on
+    the CPU through the arrays' host views (no launch), elsewhere by ``wp.copy``."""
+    if n:
+        if dst.device.is_cpu and src.device.is_cpu and not _cpu_capture_active(dst.device):
+            host(dst)[:n] = host(src)[:n]
+        else:
+            wp.copy(dst, src, count=n)
+    return dst

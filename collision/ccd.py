@@ -338,17 +338,20 @@ class CandidateNarrowPhase:
             self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
             self._vertices = wp.empty(n, dtype=wp.vec4i, device=dev)
 
-    def _collect(self, buffers, launch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _run(self, buffers, launch) -> int:
         """Runs ``launch(vf, n_vf, ee, n_ee)`` once for both kinds' candidates (it appends the
-        hits and their kinds to the output buffers through the counter) and returns (kind (K,),
-        pair (K, 2) int64, row order (K,)): the hits sorted by kind, then lexicographically by
-        pair (the order of ``BroadPhase.query``)."""
+        hits and their kinds to the output buffers through the counter) and returns the number
+        of hits (unsorted, on the device: :attr:`hits`)."""
         vf, n_vf, ee, n_ee = buffers
         self._reserve(n_vf + n_ee)
         zero(self._counter)
         if n_vf + n_ee:
             launch(vf, n_vf, ee, n_ee)
-        total = int(host(self._counter)[0])
+        return int(host(self._counter)[0])
+
+    def _sorted(self, total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(kind (K,), pair (K, 2) int64, row order (K,)) of the ``total`` hits of the last call,
+        sorted by kind, then lexicographically by pair (the order of ``BroadPhase.query``)."""
         if total == 0:
             return _NONE
         kind = host(self._kind)[:total].astype(np.int64)
@@ -356,8 +359,18 @@ class CandidateNarrowPhase:
         order = np.lexsort((pair[:, 1], pair[:, 0], kind))
         return kind[order], pair[order], order
 
+    @property
+    def hits(self) -> dict:
+        """The device buffers of the last :meth:`ccd_count` / :meth:`near_count` hits, in the
+        kernel's order (first ``count`` rows): ``kind``, ``pairs``, ``vertices``, and ``time``
+        (of the precision's float type) and ``source`` (CCD), or ``offset`` and ``weights``
+        (proximity)."""
+        return {"kind": self._kind, "pairs": self._pairs, "vertices": self._vertices, "time": self._time,
+                "source": self._source, "offset": self._offset, "weights": self._weights}
+
     def ccd(self, x0, x1, thickness: float = 0.0):
-        """Hits of the vertices moving linearly from ``x0`` to ``x1`` ((V, 3) float64).
+        """Hits of the vertices moving linearly from ``x0`` to ``x1`` ((V, 3) float64), on the
+        host (:meth:`ccd_count` leaves them on the device).
 
         After :meth:`near` at ``x0`` with motion radii, a zero-thickness call whose every vertex
         moves at most its radius tests only the pairs that near kept for it (same hits).
@@ -368,6 +381,17 @@ class CandidateNarrowPhase:
             int64, as :func:`narrow_phase`'s; vertices (K, 4) int64: the pairs' vertex indices,
             vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0, b1)``), hits only.
         """
+        kind, pair, order = self._sorted(self.ccd_count(x0, x1, thickness))
+        n = len(kind)
+        if n == 0:
+            return _NO_CCD_HITS
+        toi = host(self._time)[:n][order].astype(np.float64)
+        return (kind, pair, toi, host(self._source)[:n][order].astype(np.int64),
+                host(self._vertices)[:n][order].astype(np.int64))
+
+    def ccd_count(self, x0, x1, thickness: float = 0.0) -> int:
+        """:meth:`ccd`'s hits left on the device (:attr:`hits`, the kernel's order); returns
+        their number."""
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
@@ -399,13 +423,7 @@ class CandidateNarrowPhase:
                                    self._counter, self._pairs, self._kind, self._time, self._source,
                                    self._vertices])
 
-        kind, pair, order = self._collect(buffers, launch)
-        n = len(kind)
-        if n == 0:
-            return _NO_CCD_HITS
-        toi = host(self._time)[:n][order].astype(np.float64)
-        return (kind, pair, toi, host(self._source)[:n][order].astype(np.int64),
-                host(self._vertices)[:n][order].astype(np.int64))
+        return self._run(buffers, launch)
 
     def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
@@ -424,6 +442,14 @@ class CandidateNarrowPhase:
             pairs' vertex indices, vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0,
             b1)``). Without a pair the arrays are shared read-only empties.
         """
+        kind, pair, order = self._sorted(self.near_count(x, max_distance, motion_radius))
+        n = len(kind)
+        return (kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order],
+                host(self._vertices)[:n][order].astype(np.int64))
+
+    def near_count(self, x, max_distance: float, motion_radius=None) -> int:
+        """:meth:`near`'s pairs left on the device (:attr:`hits`, the kernel's order); returns
+        their number."""
         self._reach = None
         max_distance = float(max_distance)
         if not (np.isfinite(max_distance) and max_distance >= 0.0):
@@ -453,15 +479,13 @@ class CandidateNarrowPhase:
                                    self._counter, self._pairs, self._kind, self._offset, self._weights,
                                    self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
 
-        kind, pair, order = self._collect(buffers, launch)
+        total = self._run(buffers, launch)
         if radius is not self._no_radius:
             self._x0_holds_reach = True  # the cover path of _candidates uploaded x there
             counts = host(self._reach_counter)
             self._reach = (self._cover, np.array(x, dtype=np.float64), np.square(motion_radius),
                            (self._reach_pairs[0], int(counts[0]), self._reach_pairs[1], int(counts[1])))
-        n = len(kind)
-        return (kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order],
-                host(self._vertices)[:n][order].astype(np.int64))
+        return total
 
 
 def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thickness: float = 0.0, *,

@@ -31,6 +31,7 @@ import warp._src.context as _warp_context
 
 from collision.buffers import Arena, upload
 from kernels import contact as K
+from kernels.contact_set import active_unknowns_kernel
 
 REGULARIZATION = 1e-8
 """Relative diagonal regularisation of the active set's matrix: redundant contacts (two
@@ -152,6 +153,18 @@ class ContactReplay:
     def _or(a, empty):
         return a if a is not None and a.shape[0] else empty
 
+    def frozen(self, a: wp.array, n: int) -> wp.array:
+        """``a`` for a launch that the tape may record: a fresh copy of its first ``n`` rows
+        while a tape records or is paused (``a`` is a buffer of the decisions that a later call
+        overwrites, and the tape's backward reads what its launches read), else ``a`` itself."""
+        if not any_tape():
+            return a
+        out = wp.empty(max(n, 1), dtype=a.dtype, device=self.device)
+        if n:
+            with paused_tape():
+                wp.copy(out, a, count=n)
+        return out
+
     # ------------------------------------------------------------------ stages
     def pose(self, particle_q, body_q):
         """World positions and lever arms of all collidable vertices (+ the dummy vertex)."""
@@ -175,60 +188,64 @@ class ContactReplay:
                   inputs=[body_q, self.body_inv_inertia_body], outputs=[out], device=self.device)
         return out
 
-    def geometry(self, x0, x1, lever, rows, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
+    def geometry(self, x0, x1, lever, rows, count: int, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
                  separation, separation_rate, touching_relative, max_derivative, nearest_slot: bool = False):
-        """Times of impact [s], weights, normals and targets of new contact rows.
+        """Times of impact [s], weights, normals and targets of ``count`` new contact rows.
 
-        ``rows``: dict of host arrays ``pairs`` (C, 4), ``kinds``, ``sources``, ``detected``
-        (fraction of the substep), ``plane_ids``. ``particle_time`` / ``body_time``: host times
-        of impact already assigned to each owner (inf for none). ``nearest_slot``: take the
-        cubic's root nearest the detected fraction rather than the one in the ``sources`` slot
-        (for a narrow phase other than the float64 one as written, whose slots need not match).
+        ``rows``: device arrays (``vertices`` (vec4i), ``kind``, ``source``, ``detected`` (fraction
+        of the substep), ``plane``; :class:`collision.contacts.Hits`). ``particle_time`` /
+        ``body_time``: device times of impact already assigned to each owner (inf for none).
+        ``nearest_slot``: take the cubic's root nearest the detected fraction rather than the one
+        in the ``source`` slot (for a narrow phase other than the float64 one as written, whose
+        slots need not match).
         """
-        c = len(rows["kinds"])
+        c = count
         toi = self._zeros(c, wp.float64)
         w = self._zeros(c, wp.vec4d)
         n = self._zeros(c, wp.vec3d)
         target = self._zeros(c, wp.float64)
+        frozen = self.frozen
         wp.launch(
             K.contact_geometry_kernel, dim=c,
-            inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, self._ints(rows["pairs"], wp.vec4i),
-                    self._ints(rows["kinds"]), self._ints(rows["sources"]), self._floats(rows["detected"]),
-                    self._ints(rows["plane_ids"]), self.planes,
+            inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
+                    frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
+                    frozen(rows["plane"], c), self.planes,
                     self._or(vm_p, self.empty_vec), self._or(vc_p, self.empty_vec),
                     self._or(vm_b, self.empty_twist), self._or(vc_b, self.empty_twist),
-                    self._floats(particle_time), self._floats(body_time), wp.float64(h), wp.float64(separation),
+                    particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
                     wp.float64(max_derivative), int(bool(nearest_slot))],
             outputs=[toi, w, n, target], device=self.device,
         )
         return toi, w, n, target
 
-    def merge(self, old, new, new_index, keep_old_toi, keep_old_target):
-        """The grown contact set's (toi, targets, weights, normals): old rows (``new_index`` -1)
-        or this round's detections, as decided per row."""
-        c = len(new_index)
+    def merge(self, old, new, new_index, keep_old_toi, keep_old_target, count: int):
+        """The grown contact set's (toi, targets, weights, normals) (``count`` rows): old rows
+        (``new_index`` -1) or this round's detections, as decided per row (device int arrays,
+        :func:`kernels.contact_set.add_contacts_kernel`'s; fresh while a tape records)."""
+        c = count
         out = (self._zeros(c, wp.float64), self._zeros(c, wp.float64), self._zeros(c, wp.vec4d), self._zeros(c, wp.vec3d))
         if old is None:
             old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d))
         wp.launch(
             K.merge_contacts_kernel, dim=c,
-            inputs=[*old, *new, self._ints(new_index), self._ints(keep_old_toi), self._ints(keep_old_target)],
+            inputs=[*old, *new, new_index, keep_old_toi, keep_old_target],
             outputs=list(out), device=self.device,
         )
         return out
 
-    def solve(self, contacts, pairs, kinds, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
+    def solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
         """Exact normal impulses of an active set, then Coulomb friction, and the velocities.
 
         Args:
             contacts: (toi, targets, weights, normals) device arrays of the whole set (C,).
-            pairs, kinds: host (C, 4), (C,) of the set.
-            active: host bool (C,): the contacts whose normal relative velocity must end at
-                their target (the others get no impulse).
+            vertices, kinds: the set's device (C,) vec4i vertex indices and int32 kinds
+                (:class:`collision.contacts.Contacts`); ``count`` = C.
+            active: device int32 (C,): the contacts whose normal relative velocity must end at
+                their target (the others get no impulse; fresh while a tape records).
             lever, inv_inertia_w: start-pose lever arms and world inverse inertia tensors.
             vm_p, vm_b: the velocities before any impulse (``v-``).
-            share: host (C,) friction share factors (see
+            share: device (C,) friction share factors (see
                 :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
 
         Returns:
@@ -236,24 +253,26 @@ class ContactReplay:
             impulses are those of the last normal pass (after friction, when there is any).
         """
         _, targets, weights, normals = contacts
-        c = len(kinds)
-        pairs_w = self._ints(pairs, wp.vec4i)
-        kinds_w = self._ints(kinds)
+        c = count
+        pairs_w = self.frozen(vertices, c)
+        kinds_w = self.frozen(kinds, c)
         sides = (self.take(c, wp.vec2i, grad=False), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
                  self._zeros(c, wp.vec3d))
         wp.launch(K.contact_sides_kernel, dim=c,
                   inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
                   outputs=list(sides), device=self.device)
-        unknowns = np.flatnonzero(active).astype(np.int32)
-        n_u = len(unknowns)
-        contact_unknown = np.full(c, -1, dtype=np.int32)
-        contact_unknown[unknowns] = np.arange(n_u, dtype=np.int32)
+        # the active contacts as unknowns, in row order (a decision: off the tape)
+        uc = self.take(c, wp.int32, zero=False, grad=False)
+        cu = self.take(c, wp.int32, zero=False, grad=False)
+        unknown_count = self.take(1, wp.int32, zero=False, grad=False)
+        with paused_tape():
+            wp.launch(active_unknowns_kernel, dim=1, inputs=[c, active], outputs=[uc, cu, unknown_count],
+                      device=self.device)
+        n_u = int(unknown_count.numpy()[0])
         masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
         if not n_u:
             return vm_p, vm_b, self._zeros(c, wp.vec3d)
         self.largest_system = max(self.largest_system, n_u)
-        uc = self._ints(unknowns)
-        cu = self._ints(contact_unknown)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
         wp.launch(K.delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
@@ -279,7 +298,7 @@ class ContactReplay:
             # the friction (a rigid body's friction impulse changes its normal velocities too)
             friction = self._zeros(c, wp.vec3d)
             wp.launch(K.friction_impulses_kernel, dim=c,
-                      inputs=[normal, self._floats(share), pairs_w, weights, normals, self.vertex_type,
+                      inputs=[normal, share, pairs_w, weights, normals, self.vertex_type,
                               self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
                               self._or(vb, self.empty_twist), wp.float64(self.friction)],
                       outputs=[friction], device=self.device)
@@ -388,18 +407,19 @@ class ContactReplay:
         return out_p, out_b
 
     def integrate(self, x0p, x_pred, vm_p, vp, bq0, bq_pred, vm_b, vb, particle_owner, body_owner, toi, h):
-        """Time-of-impact integration of particles and bodies (owner contact -1: the prediction
-        stays; -2: an impact zone's rigid motion over the whole substep)."""
+        """Time-of-impact integration of particles and bodies (owner contact rows: device int32
+        arrays, fresh while a tape records; -1: the prediction stays; -2: an impact zone's rigid
+        motion over the whole substep)."""
         xp = x_pred
         if x0p is not None and x0p.shape[0]:
             xp = self._zeros(x0p.shape[0], wp.vec3d)
             wp.launch(K.time_of_impact_particles_kernel, dim=x0p.shape[0],
-                      inputs=[x0p, x_pred, vm_p, vp, self._ints(particle_owner), toi, wp.float64(h)],
+                      inputs=[x0p, x_pred, vm_p, vp, particle_owner, toi, wp.float64(h)],
                       outputs=[xp], device=self.device)
         bq = bq_pred
         if bq0 is not None and bq0.shape[0]:
             bq = self._zeros(bq0.shape[0], wp.transformd)
             wp.launch(K.time_of_impact_bodies_kernel, dim=bq0.shape[0],
-                      inputs=[bq0, bq_pred, vm_b, vb, self._ints(body_owner), toi, wp.float64(h)],
+                      inputs=[bq0, bq_pred, vm_b, vb, body_owner, toi, wp.float64(h)],
                       outputs=[bq], device=self.device)
         return xp, bq

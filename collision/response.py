@@ -36,27 +36,38 @@ model's components decide which groups exist and which may touch (cloth with its
    can collide, and the start of a substep is collision free: this terminates without
    interpenetration.
 
-Two forms share the detection: the default one above (its decisions and its projected
-Gauss-Seidel impulses in numpy and Warp kernels around the Warp broad and narrow phases, which
-read the candidate pairs where the broad phase left them; it reuses its buffers, so stepping
-allocates no Warp array, and its cost is measured per scene in ``benchmarks/sim.py``), and with
-``differentiable=True`` the replayed one (design.md "Differentiating collision response:
-decide, then replay"): decisions off the tape, then ``t*`` through the mollified roots, the
-exact impulse solve, the time-of-impact integration and the impact zones' rigid motion as taped
-Warp launches (:mod:`collision.replay`).
+Everything per contact happens on the model's device: the narrow phase and the proximity test
+read the broad phase's candidate pairs where it left them and append their hits through
+counters; the hits are put in pair order (the same contacts in the same order whatever the
+thread schedule or the candidates' order), matched to the contact set, given their geometry,
+tested for approach and added to a fixed-capacity device contact set
+(:class:`collision.contacts.Contacts`) by the kernels of :mod:`kernels.contact_set`; the solve
+and the plan read that set where it is. The host sees only counts (hits, approaching hits,
+contacts, Gauss-Seidel sweeps, the active set's changes), the per-vertex positions of the
+broad-phase cover's box tests (views of the device arrays on the CPU) and, in the rare
+fail-safe, the approaching hits that join impact zones.
+
+Two forms share the detection: the default one above (projected Gauss-Seidel impulses; it
+reuses its buffers, so stepping allocates no Warp array, and its cost is measured per scene in
+``benchmarks/sim.py``), and with ``differentiable=True`` the replayed one (design.md
+"Differentiating collision response: decide, then replay"): the same decisions off the tape,
+then ``t*`` through the mollified roots, the exact impulse solve, the time-of-impact integration
+and the impact zones' rigid motion as taped Warp launches (:mod:`collision.replay`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import weakref
 
 import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from collision.buffers import RecordedLaunches, Staging, host, read_only, upload
+from collision.buffers import RecordedLaunches, Staging, copy_rows, host, zero
 from collision.ccd import ONES3, CandidateNarrowPhase
+from collision.contacts import Contacts, Hits
 from kernels.variants import check_settings as check_ccd_settings
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
@@ -64,11 +75,15 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (contact_geometry_kernel, pair_weights_kernel,
-                             planned_substep_kernel, pose_substep_kernel, pose_vertices_kernel,
-                             solve_contacts_kernel)
+from kernels.contact import (contact_geometry_kernel, planned_substep_kernel, pose_substep_kernel,
+                             pose_vertices_kernel, solve_contacts_kernel)
+from kernels.contact_set import (active_set_update_kernel, add_contacts_kernel, approach_kernel,
+                                 flags_differ_kernel, friction_share_count_kernel, friction_share_kernel,
+                                 gather_hits_kernel, hit_keys_kernel, initial_active_kernel, match_contacts_kernel,
+                                 owner_rows_finish_kernel, owner_rows_kernel, owner_rows_reset_kernel,
+                                 owner_times_kernel, owner_times_reset_kernel, plane_crossing_kernel,
+                                 plane_proximity_kernel, set_impulses_kernel, sort_keys_kernel)
 from sim.model import Model, State
-from sim.rotation import cross, quat_to_matrix, row_norms
 
 SEPARATION_RATE = 0.1
 """Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
@@ -162,194 +177,109 @@ COVER_SPARSE_CANDIDATES = 128
 COVER_DENSE_CANDIDATES = 1024
 """See :data:`COVER_SCALES`."""
 
+DEVICE_SORT_MIN = 2048
+"""Off the CPU, a detection pass with more hits than this is put in order by Warp's radix sort
+(a thread per key) instead of the one-thread heap sort (:func:`kernels.contact_set.sort_keys_kernel`);
+both give the same order (distinct keys). On the CPU the heap sort is used always: its threads
+run one after another anyway, and the radix sort costs ~75 us at any size there."""
+
 ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
 
-class _Contacts:
-    """The contact set of one substep (grows over the CCD rounds; keyed by primitive pair).
-
-    Args:
-        key_base: more than any index a pair holds (vertex, face, edge or plane): a pair
-            ``(kind, a, b)`` is keyed by the one integer ``(kind key_base + a) key_base + b``.
-    """
-
-    # the empty set's rows: shared read-only arrays (every substep makes a set; its first add()
-    # replaces them all, so later ones only concatenate to or write into the set's own rows)
-    key, idx, kind = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64))
-    w, n = read_only(np.zeros((0, 4)), np.zeros((0, 3)))
-    toi, target, jn, jt = read_only(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
-    edge_edge, timed = read_only(np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
-
-    def __init__(self, key_base: int) -> None:
-        # rows (see the class attributes' empties): key: the pair of each row as one integer
-        # (see _keys); idx (C, 4) vertex indices (CCD order); kind: 0 vertex-face, 1 edge-edge,
-        # 2 vertex-plane; w (C, 4) weights: side A positive (sum 1), side B negative (sum -1);
-        # n (C, 3): unit normal from side B to side A; toi: time of impact in the substep [s];
-        # target: minimum normal relative velocity after the impulse [m/s]; timed: the time comes
-        # from a root or a plane crossing, so the replay differentiates it (not a constant:
-        # proximity, collinear or advancement detections); jn, jt (C, 3): accumulated normal /
-        # friction impulses [N s]
-        self.key_base = int(key_base)
-
-    def __len__(self) -> int:
-        return len(self.toi)
-
-    def _keys(self, kind: np.ndarray, pair: np.ndarray) -> np.ndarray:
-        pair = np.asarray(pair, dtype=np.int64).reshape(-1, 2)
-        return (np.asarray(kind, dtype=np.int64) * self.key_base + pair[:, 0]) * self.key_base + pair[:, 1]
-
-    def _rows(self, keys: np.ndarray) -> np.ndarray:
-        """(C,) the row of each key in the set, -1 where the pair is not in it (keys are unique
-        per row, so a sorted search finds at most one)."""
-        if not len(self.key):
-            return np.full(len(keys), -1, dtype=np.int64)
-        order = np.argsort(self.key)
-        ordered = self.key[order]
-        at = np.minimum(np.searchsorted(ordered, keys), len(ordered) - 1)
-        return np.where(ordered[at] == keys, order[at], -1)
-
-    def _first(self, keys, kind, idx, w, n, toi, target, timed, copy):
-        """:meth:`add` into the empty set (every substep's first: no pair is in the set yet)."""
-        c = len(keys)
-        array = np.array if copy else np.asarray
-        kind = array(kind, dtype=np.int64)
-        self.key, self.kind, self.edge_edge = keys, kind, kind == 1
-        self.idx, self.w, self.n = array(idx, dtype=np.int64), array(w, dtype=np.float64), array(n, dtype=np.float64)
-        self.toi, self.target = array(toi, dtype=np.float64), array(target, dtype=np.float64)
-        self.timed = np.zeros(c, dtype=bool) if timed is None else np.array(timed, dtype=bool)
-        self.jn, self.jt = np.zeros(c), np.zeros((c, 3))
-        zero = np.zeros(c, dtype=np.int64)
-        return np.arange(c), zero, zero.copy()
-
-    def at_end(self, kind: np.ndarray, pair: np.ndarray, toi: np.ndarray, h: float) -> np.ndarray:
-        """(C,) bool: the pair is in the set already, at the very end of the substep ``h`` [s],
-        and detected there again (``toi`` [s])."""
-        end = h * (1.0 - END_OF_SUBSTEP)
-        row = self._rows(self._keys(kind, pair))
-        found = row >= 0
-        if not found.any():
-            return found
-        return found & (self.toi[np.maximum(row, 0)] >= end) & (np.asarray(toi) >= end)
-
-    def add(self, kind: np.ndarray, pair: np.ndarray, idx, w, n, toi, target, timed=None, copy=True,
-            distinct=False):
-        """Adds contacts, pairs distinct (a pair already present takes the new normal, weights
-        and target, and the earlier of the two times). ``timed`` (C,) bool: the time is
-        differentiated by the replay (default: none is). ``copy=False``: the set may keep the
-        arrays given (the caller's own, not used after). ``distinct=True``: the caller's rows
-        are distinct pairs by construction (the proximity pass: each candidate pair once, each
-        vertex-plane pair once), so the check for a repeated pair is skipped.
-
-        Returns:
-            (new_index, keep_old_toi, keep_old_target) over the grown set: the row of the
-            arguments each contact now takes its geometry from (-1: unchanged), and whether it
-            kept its old time / target (the decisions the taped replay repeats).
-        """
-        keys = self._keys(kind, pair)
-        if not distinct and len(keys) > 1 and not np.diff(np.sort(keys)).all():  # a repeated key (np.unique, cheaper)
-            raise ValueError("pair: a contact pair appears twice in one call (the rows must be distinct pairs)")
-        before = len(self.toi)
-        if before == 0:
-            return self._first(keys, kind, idx, w, n, toi, target, timed, copy)
-        new_index = np.full(before, -1, dtype=np.int64)
-        keep_toi = np.zeros(before, dtype=np.int64)
-        keep_target = np.zeros(before, dtype=np.int64)
-        timed = np.zeros(len(pair), dtype=bool) if timed is None else np.asarray(timed, dtype=bool)
-        row = self._rows(keys)
-        old = np.flatnonzero(row >= 0)  # arguments whose pair is in the set already
-        if len(old):
-            at = row[old]
-            self.w[at], self.n[at] = w[old], n[old]
-            new_index[at] = old
-            kept_toi = self.toi[at] <= toi[old]
-            kept_target = self.target[at] >= target[old]
-            keep_toi[at] = kept_toi
-            keep_target[at] = kept_target
-            self.timed[at] = np.where(kept_toi, self.timed[at], timed[old])
-            # the earlier time and the larger target, ties (and NaN) keeping the old value (as
-            # Python's min / max did)
-            self.toi[at] = np.where(toi[old] < self.toi[at], toi[old], self.toi[at])
-            self.target[at] = np.where(target[old] > self.target[at], target[old], self.target[at])
-        r = np.flatnonzero(row < 0)  # new pairs
-        if len(r):
-            rows = {"key": keys[r], "idx": idx[r], "kind": kind[r], "w": w[r], "n": n[r], "toi": toi[r],
-                    "target": target[r], "edge_edge": kind[r] == 1, "timed": timed[r], "jn": np.zeros(len(r)),
-                    "jt": np.zeros((len(r), 3))}
-            for name, value in rows.items():
-                # the first contacts of a substep need no concatenation (the rows are copies)
-                setattr(self, name, np.concatenate([getattr(self, name), value]) if before else value)
-            new_index = np.concatenate([new_index, r])
-            keep_toi = np.concatenate([keep_toi, np.zeros(len(r), dtype=np.int64)])
-            keep_target = np.concatenate([keep_target, np.zeros(len(r), dtype=np.int64)])
-        return new_index, keep_toi, keep_target
+ACTIVE_SET_PULLING = 1e-9
+"""An active contact leaves the replayed response's active set when its exact normal impulse is
+below ``-ACTIVE_SET_PULLING`` times the largest one (it pulls; rounding of a zero impulse stays
+above)."""
 
 
 class _CallContacts:
     """The contacts of one handler call, for its ``last_*`` statistics, worked out when first
     read: the recorder, the implicit integrator and the benchmarks read them, a plain stepping
-    loop does not (working them out on every call cost about 0.1 ms per substep).
+    loop does not.
 
     Args:
-        cs: the call's contact set (not changed after the call), or None (no contact).
-        x0, x1: the vertices' positions (V + 1, 3) at the start and the planned end [m]
-            (copied here when a contact received an impulse: they may be reused buffers).
+        cs: the call's contact set: a device :class:`collision.contacts.Contacts` (read where it
+            is until :meth:`materialize` copies it: the handler calls that before the next call
+            reuses the buffers), or None.
+        x0, x1: device arrays of the vertices' positions (V + 1, 3) at the start and the
+            planned end [m].
         h: the substep [s].
         vertex_type: (V + 1,) the vertex kinds.
     """
 
     def __init__(self, cs=None, x0=None, x1=None, h=1.0, vertex_type=None) -> None:
-        self._active = (cs.jn > 0) if cs is not None and len(cs) else np.zeros(0, dtype=bool)
-        self.count = int(np.count_nonzero(self._active))
-        if self.count:
-            x0, x1 = x0.copy(), x1.copy()
-        self._args = (cs, x0, x1, h, vertex_type)
+        self._h, self._vertex_type = h, vertex_type
+        self._device = None
+        self._rows = None  # host (kind, vertex indices, weights, normals, toi, normal impulse), x0, x1
+        if cs is not None and cs.count:
+            self._device = (cs, cs.count, x0, x1)
+        self._count = None
         self._contacts = None
         self._body_particles = None
+
+    @property
+    def reads_buffers(self) -> bool:
+        """Whether the record still reads the handler's device buffers."""
+        return self._device is not None
+
+    def materialize(self) -> None:
+        """Copies what the record reads out of the handler's buffers (before they are reused)."""
+        if self._device is None:
+            return
+        cs, count, x0, x1 = self._device
+        self._device = None
+        rows = tuple(np.array(host(getattr(cs, name))[:count])
+                     for name in ("kind", "vertices", "weights", "normals", "toi", "normal_impulse"))
+        active = rows[5] > 0
+        self._rows = (rows, np.array(host(x0)) if active.any() else None, np.array(host(x1)) if active.any() else None)
+
+    def _host_rows(self):
+        self.materialize()
+        return self._rows
+
+    @property
+    def count(self) -> int:
+        """How many contacts received an impulse."""
+        if self._count is None:
+            if self._device is not None:  # the impulses only (no copy of the rest)
+                cs, count = self._device[:2]
+                self._count = int(np.count_nonzero(host(cs.normal_impulse)[:count] > 0))
+            else:
+                self._count = 0 if self._rows is None else int(np.count_nonzero(self._rows[0][5] > 0))
+        return self._count
 
     def contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(points (C, 3) [m]: side A's closest point at ``t*`` on the straight paths x0 -> x1,
         normals (C, 3), times of impact (C,) [s]) of the contacts that received an impulse."""
         if self._contacts is None:
-            cs, x0, x1, h, _ = self._args
-            active = self._active
-            if active.any():
-                ia = cs.idx[active]
-                side_a = np.abs(np.where(np.arange(4) < np.where(cs.edge_edge[active], 2, 1)[:, None],
-                                         cs.w[active], 0.0))
-                y = x0[ia] + (cs.toi[active] / h)[:, None, None] * (x1[ia] - x0[ia])
-                self._contacts = (np.einsum("ck,ckd->cd", side_a, y), cs.n[active], cs.toi[active])
-            else:
-                self._contacts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+            self._contacts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+            if self.count:
+                (kind, idx, w, n, toi, jn), x0, x1 = self._host_rows()
+                active = jn > 0
+                ia = idx[active]
+                side_a = np.abs(np.where(np.arange(4) < np.where(kind[active] == 1, 2, 1)[:, None], w[active], 0.0))
+                y = x0[ia] + (toi[active] / self._h)[:, None, None] * (x1[ia] - x0[ia])
+                self._contacts = (np.einsum("ck,ckd->cd", side_a, y), n[active], toi[active])
         return self._contacts
 
     def body_particles(self) -> np.ndarray:
         """(K,) int64 the particles (sorted, distinct) that share a contact with a rigid body's
         vertex."""
         if self._body_particles is None:
-            cs, vertex_type = self._args[0], self._args[4]
             self._body_particles = np.zeros(0, dtype=np.int64)
-            if cs is not None and len(cs):
-                types = vertex_type[cs.idx]
-                rows = (types == _BODY).any(axis=1)
-                if rows.any():
-                    self._body_particles = np.unique(cs.idx[rows][types[rows] == _PARTICLE])
+            rows = self._host_rows()
+            if rows is not None:
+                idx = rows[0][1].astype(np.int64)
+                types = self._vertex_type[idx]
+                touch = (types == _BODY).any(axis=1)
+                if touch.any():
+                    self._body_particles = np.unique(idx[touch][types[touch] == _PARTICLE])
         return self._body_particles
 
 
 _NO_CONTACTS = _CallContacts()
 """The record of a call without contacts (shared: a record is not changed after it is made)."""
-
-# no CCD hit (ImpulseCollisionHandler._ccd_candidates): kind, pair, vertex indices, time, source
-_NO_HITS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros((0, 4), dtype=np.int64),
-                     np.zeros(0), np.zeros(0, dtype=np.int64))
-
-
-# no vertex near a plane (ImpulseCollisionHandler._plane_proximity): kind, pair, vertex indices,
-# distance; and an empty index array
-_NO_PLANE_ROWS = read_only(np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64),
-                           np.zeros((0, 4), dtype=np.int64), np.zeros(0))
-_NONE_INDEX = _NO_PLANE_ROWS[0]
 
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
 """Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
@@ -472,18 +402,12 @@ class ImpulseCollisionHandler:
         self._plane_vertex_ids = np.concatenate([movable_particles, np.arange(mesh.shape_offset, mesh.static_offset)])
         self._plane_threshold = np.concatenate([np.full((len(movable_particles), 1), 1.0 - PLANE_ROUNDING_SLACK),
                                                 np.ones((self.n_shape, 1))])  # x delta, per vertex
-        self._plane_normals_t, self._plane_offsets = self.planes[:, :3].T, self.planes[:, 3]
-        ids = self._plane_vertex_ids
-        # the rows of those vertices: a slice when they are consecutive (no gather per call)
-        self._plane_rows_of = slice(int(ids[0]), int(ids[-1]) + 1) \
-            if len(ids) and np.array_equal(ids, np.arange(ids[0], ids[-1] + 1)) else ids
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
         self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=model.device)  # an unread inertia array
         self._cover_scale = 0  # index into COVER_SCALES
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
-        self._out = model.state()
         self.last_sweeps = 0
         self.broad_phase = None
         if self.n_vertices and len(self.faces):
@@ -500,17 +424,7 @@ class ImpulseCollisionHandler:
         inv_mass[is_particle] = self.particle_inv_mass[self.vertex_owner[is_particle]]
         self._mobile_vertex = (self.vertex_type == _BODY) | (inv_mass > 0)
         self.n_bodies = int(m.body_count) if self.n_shape else 0
-        # each vertex's particle / body, one past the last for the other kinds (_owner_times)
-        self._particle_slot = np.where(self.vertex_type == _PARTICLE, self.vertex_owner, self.n_particles)
-        self._body_slot = np.where(self.vertex_type == _BODY, self.vertex_owner, self.n_bodies)
-        # the contact times of a plan that no contact changed (read only)
-        self._inf_p, self._inf_b = read_only(np.full(self.n_particles, np.inf), np.full(self.n_bodies, np.inf))
-        self.body_inv_mass = np.zeros(0)
-        self._body_mass = np.zeros(0)
-        if self.n_bodies:
-            self.body_inv_mass = m.body_inv_mass.numpy()
-            self._body_mass = m.body_mass.numpy()
-            self._body_inertia = m.body_inertia.numpy().reshape(-1, 3, 3)
+        self.body_inv_mass = m.body_inv_mass.numpy() if self.n_bodies else np.zeros(0)
         self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
         self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
         self.separation = contact_separation(model, mesh)
@@ -529,6 +443,33 @@ class ImpulseCollisionHandler:
             m.body_inv_inertia if self.n_bodies else None,
             self.planes, m.friction, m.restitution, m.device,
         )
+        # the Gauss-Seidel path's device decisions (kernels.contact_set): the contact set, one
+        # detection pass's hits, the plane tests' vertices, distances and hits, the counters
+        dev = model.device
+        self._contacts, self._hits = Contacts(dev), Hits(dev)
+        self._records = weakref.WeakSet()  # the calls' contact records that still read the buffers
+        ids = self._plane_vertex_ids
+        self._plane_ids_w = wp.array(np.append(ids, 0).astype(np.int32), dtype=wp.int32, device=dev)
+        self._plane_threshold_w = wp.array(np.append(self._plane_threshold[:, 0], 1.0), dtype=wp.float64, device=dev)
+        rows = max(len(ids) * len(self.planes), 1)
+        self._plane_d0_w = wp.zeros(rows, dtype=wp.float64, device=dev)
+        self._plane_pairs_w = wp.zeros(rows, dtype=wp.vec2i, device=dev)
+        self._plane_time_w = wp.zeros(rows, dtype=wp.float64, device=dev)
+        self._plane_counter, self._kept_counter, self._approach_counter = (wp.zeros(1, dtype=wp.int32, device=dev)
+                                                                           for _ in range(3))
+        P, B = max(self.n_particles, 1), max(self.n_bodies, 1)
+        self._particle_time_w = wp.zeros(P, dtype=wp.float64, device=dev)
+        self._body_time_w = wp.zeros(B, dtype=wp.float64, device=dev)
+        # no contact time yet (inf) and no impact zone (read only)
+        self._inf_time_p = wp.array(np.full(P, np.inf), dtype=wp.float64, device=dev)
+        self._inf_time_b = wp.array(np.full(B, np.inf), dtype=wp.float64, device=dev)
+        self._no_zone_p = wp.zeros(P, dtype=wp.int32, device=dev)
+        self._no_zone_b = wp.zeros(B, dtype=wp.int32, device=dev)
+        # the result's arrays (the plan's ends and the velocities after the impulses: the model's
+        # shapes, so the integrator copies them as they are)
+        self._result = model.state()
+        self._no_merge = wp.zeros(1, dtype=wp.int32, device=dev)  # the merge decisions' stand-in (not written)
+        self._mobile_vertex_w = wp.array(self._mobile_vertex.astype(np.int32), dtype=wp.int32, device=dev)
 
     # ------------------------------------------------------------------------------------------
     # geometry
@@ -559,7 +500,8 @@ class ImpulseCollisionHandler:
 
         Returns:
             (start positions, start lever arms, their device arrays (2), predicted positions,
-            inverse inertia device array): host arrays (V + 1, 3) as :meth:`_pose`'s.
+            inverse inertia device array): host arrays (V + 1, 3) as :meth:`_pose`'s (the
+            predicted positions' device array is kept in ``_x1_pred_w``).
         """
         n, R, B = self.n_vertices + 1, self._replay, self.n_bodies
         empty = self._staging.empty
@@ -572,37 +514,8 @@ class ImpulseCollisionHandler:
             state_pred.particle_q if P else R.empty_vec, state_pred.body_q if B else R.empty_pose,
             R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
             n, B, x0, lever0, x1, inv_inertia_w])
+        self._x1_pred_w = x1
         return host(x0)[:n], host(lever0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
-
-    def _plan(self, state_in: State, state_pred: State, particle_time, body_time, vp, bv, h: float):
-        """End positions of the substep ``h`` [s] for the particles' / bodies' earliest contact
-        times ``particle_time`` (P,), ``body_time`` (B,) [s] (inf: none, the prediction of
-        ``state_pred`` stays) and their velocities after the impulses ``vp`` (P, 3), ``bv`` (B, 6):
-        the replay's time-of-impact integration (:func:`kernels.contact.time_of_impact_position`,
-        ``time_of_impact_pose``), then the vertices' positions (:meth:`_pose`).
-
-        Returns:
-            (particle positions (P, 3), body poses (B, 7), vertex positions (V + 1, 3)): views
-            of the handler's buffers (the next plan overwrites them).
-        """
-        put, empty, R = self._staging.put, self._staging.empty, self._replay
-        P, B, n = self.n_particles, self.n_bodies, self.n_vertices + 1
-        x1p = empty("planned_particle_q", P, wp.vec3d)
-        bq1 = empty("planned_body_q", B, wp.transformd)
-        x1 = empty("x_planned", n, wp.vec3d)
-        particles = [state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, put("planned_vp", vp, wp.vec3d),
-                     put("particle_time", particle_time, wp.float64)] if P else [R.empty_vec] * 4 + [self._no_time]
-        bodies = [state_in.body_q, state_pred.body_q, state_pred.body_qd, put("planned_bv", bv, wp.spatial_vectord),
-                  put("body_time", body_time, wp.float64)] if B else \
-            [R.empty_pose, R.empty_pose, R.empty_twist, R.empty_twist, self._no_time]
-        # with bodies the vertices are posed by a second launch from the planned poses: in the
-        # fused one every rigid vertex would integrate its body's pose again (a body of a few
-        # hundred vertices made the plan 4x dearer); the same functions, so the same values
-        self._launches.launch("plan", planned_substep_kernel, P + B + (0 if B else n), [
-            *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
-        if B:
-            x1 = self._pose("planned", x1p if P else None, bq1)[2]
-        return (host(x1p)[:P] if P else np.zeros((0, 3)), host(bq1)[:B] if B else np.zeros((0, 7)), host(x1)[:n])
 
     def _cover(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float) -> None:
         """The substep's broad-phase cover (:meth:`CandidateNarrowPhase.cover`) of the motion
@@ -618,275 +531,6 @@ class ImpulseCollisionHandler:
                 self._cover_scale = min(self._cover_scale + 1, len(COVER_SCALES) - 1)
             elif found > COVER_DENSE_CANDIDATES:
                 self._cover_scale = max(self._cover_scale - 1, 0)
-
-    def _plane_distances(self, x: np.ndarray) -> np.ndarray | None:
-        """Signed distances (K, planes) of the plane-tested vertices (:attr:`_plane_vertex_ids`)
-        at positions ``x`` (V + 1, 3) from the planes, or None without planes or such vertices
-        (one product per call: the proximity pass and the CCD rounds share the start's)."""
-        if not (len(self._plane_vertex_ids) and len(self.planes)):
-            return None
-        return x[self._plane_rows_of] @ self._plane_normals_t - self._plane_offsets
-
-    def _proximity_rows(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float, plane_d0: np.ndarray | None):
-        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3)):
-        pairs of primitives whose exact closest points are nearer than ``delta`` [m], then
-        movable vertices nearer than ``delta`` to a plane (:meth:`_plane_proximity`).
-
-        The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
-        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
-        3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`).
-        ``plane_d0``: :meth:`_plane_distances` of ``x0``.
-
-        Returns:
-            (kind (C,), pair (C, 2), vertex indices (C, 4)): the mesh pairs (kinds 0, 1) first,
-            then the vertex-plane ones (kind 2; :meth:`_start_geometry` relies on the order).
-        """
-        n = self.n_vertices
-        radius = None
-        if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
-            step = x1_pred[:n] - x0[:n]
-            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
-            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
-                radius = None
-        kind, pair, off, _, idx = self._narrow.near(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test is here
-        near = row_norms(off) < delta
-        if not near.all():  # the kernel's test had a hair of slack
-            kind, pair, idx = kind[near], pair[near], idx[near]
-        if plane_d0 is None:
-            return kind, pair, idx
-        plane_kind, plane_pair, plane_idx, _ = self._plane_proximity(plane_d0, delta)
-        if not len(plane_kind):
-            return kind, pair, idx
-        return (np.concatenate([kind, plane_kind]), np.concatenate([pair, plane_pair]),
-                np.concatenate([idx, plane_idx]))
-
-    def _start_geometry(self, kind, pair, idx, x0: wp.array, lever: wp.array, state_pred: State, h: float):
-        """Weights (C, 4), unit normals (C, 3) and target normal velocities (C,) [m/s] of the
-        proximity contacts ``kind``, ``pair``, ``idx`` (:meth:`_proximity_rows`) at the start
-        positions: :func:`kernels.contact.contact_geometry_kernel`, the replay's definition
-        (the offset's direction, or for touching pairs the face / edges' normal turned against
-        the relative motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the
-        velocities ``v-`` of ``state_pred``). ``x0``, ``lever``: the start pose's device arrays
-        (:meth:`_pose`). Keeps the rows' device arrays for the first solve (``_start_rows``)."""
-        c, R = len(kind), self._replay
-        put, empty = self._staging.put, self._staging.empty
-        out = (empty("geo_toi", c, wp.float64), empty("geo_w", c, wp.vec4d), empty("geo_n", c, wp.vec3d),
-               empty("geo_target", c, wp.float64))
-        vm_p = state_pred.particle_qd if self.n_particles else R.empty_vec
-        vm_b = state_pred.body_qd if self.n_bodies else R.empty_twist
-        idx_w, kind_w = put("geo_idx", idx, wp.vec4i), put("geo_kind", kind, wp.int32)
-        self._launches.launch("start_geometry", contact_geometry_kernel, c, [
-            x0, x0, lever, R.vertex_type, R.vertex_owner, idx_w, kind_w,
-            # sources 0 (at the start: no root) and detected fractions 0
-            self._staging.zeros("int", c, wp.int32), self._staging.zeros("float", c, wp.float64),
-            # the planes of the vertex-plane rows (_proximity_rows puts them last; 0 elsewhere, unused)
-            put("geo_plane", np.where(kind == 2, pair[:, 1], 0), wp.int32) if kind[-1] == 2
-            else self._staging.zeros("int", c, wp.int32), R.planes,
-            vm_p, vm_p, vm_b, vm_b, self._no_time, self._no_time, float(h), float(self.separation),
-            float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
-            float(self.max_derivative), 0, *out])
-        # the rows as the solve reads them (vertex indices, kinds, weights, normals, targets)
-        self._start_rows = (idx_w, kind_w, out[1], out[2], out[3])
-        return host(out[1])[:c].copy(), host(out[2])[:c].copy(), host(out[3])[:c].copy()
-
-    def _weights(self, y: np.ndarray, kind: np.ndarray) -> np.ndarray:
-        """Signed weights (C, 4) of the exact closest points of the pairs (``kind`` (C,): 0
-        vertex-face, 1 edge-edge, 2 vertex-plane) at positions ``y`` (C, 4, 3): side A positive
-        (sum 1), side B negative (sum -1); :func:`kernels.contact.pair_weights`, the definition
-        the replay and the narrow phase use."""
-        if not len(y):
-            return np.zeros((0, 4))
-        put = self._staging.put
-        out = self._staging.empty("weights", len(y), wp.vec4d)
-        self._launches.launch("weights", pair_weights_kernel, len(y),
-                              [put("kind", kind, wp.int32), put("y", np.reshape(y, (-1, 3)), wp.vec3d), out])
-        return host(out)[: len(y)].copy()
-
-    def _plane_proximity(self, dist: np.ndarray, delta: float):
-        """Movable vertices (unpinned particles, rigid vertices) closer than ``delta`` to (or
-        behind) a plane at the start, from their :meth:`_plane_distances` ``dist`` there: (kind
-        2, pair (vertex, plane), vertex indices (vertex, dummy x3), signed distance)."""
-        verts = self._plane_vertex_ids
-        # the integrator's plane stage leaves particles at exactly delta, which this product
-        # may round to a hair below: such a particle is no contact (without the slack a resting
-        # cloth joined the solve on every substep, all of it in one replayed system)
-        v, k = np.nonzero(dist < self._plane_threshold * delta)
-        if not len(v):  # the common case: nothing near a plane
-            return _NO_PLANE_ROWS
-        return self._plane_rows(verts[v], k) + (dist[v, k],)
-
-    def _plane_rows(self, vertex: np.ndarray, plane: np.ndarray):
-        kind = np.full(len(vertex), 2, dtype=np.int64)
-        pair = np.empty((len(vertex), 2), dtype=np.int64)
-        pair[:, 0], pair[:, 1] = vertex, plane
-        idx = np.full((len(vertex), 4), self.n_vertices, dtype=np.int64)
-        idx[:, 0] = vertex
-        return kind, pair, idx
-
-    def _ccd_candidates(self, x0: np.ndarray, x1: np.ndarray, plane_d0: np.ndarray | None):
-        """Hits of the straight paths ``x0 -> x1`` (with the dummy vertex last): vertex-face,
-        edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a movable vertex
-        ends behind the plane, moving inwards).
-
-        Returns:
-            (kind (C,), pair (C, 2), vertex indices (C, 4), time of impact as a fraction of the
-            substep (C,), source (C,): the narrow phase's (0 start, 1-3 cubic slot, 4 collinear,
-            5 advancement) or 6 for planes). ``plane_d0``: :meth:`_plane_distances` of ``x0``.
-        """
-        n = self.n_vertices
-        kinds, pairs, idxs, tois, sources = [], [], [], [], []
-        kind, pair, toi, source, idx = self._narrow.ccd(x0[:n], x1[:n], 0.0)
-        if len(kind):
-            kinds.append(kind)
-            pairs.append(pair)
-            idxs.append(idx)
-            tois.append(toi)
-            sources.append(source)
-        if plane_d0 is not None:
-            verts = self._plane_vertex_ids
-            d0 = plane_d0
-            d1 = self._plane_distances(x1)
-            behind = d1 < 0.0
-            v, k = np.nonzero(behind & (d1 < d0)) if behind.any() else (_NONE_INDEX, _NONE_INDEX)
-            if len(v):
-                kind, pair, idx = self._plane_rows(verts[v], k)
-                kinds.append(kind)
-                pairs.append(pair)
-                idxs.append(idx)
-                tois.append(np.clip(d0[v, k] / (d0[v, k] - d1[v, k]), 0.0, 1.0))
-                sources.append(np.full(len(v), 6, dtype=np.int64))
-        if not kinds:
-            return _NO_HITS
-        if len(kinds) == 1:
-            return kinds[0], pairs[0], idxs[0], tois[0], sources[0]
-        return (np.concatenate(kinds), np.concatenate(pairs), np.concatenate(idxs), np.concatenate(tois),
-                np.concatenate(sources))
-
-    # ------------------------------------------------------------------------------------------
-    # velocities and impulses
-
-    def _vertex_velocities(self, idx, vp, bv, r0):
-        """(C, 4, 3) velocities of the contacts' vertices for particle velocities ``vp`` and body
-        twists ``bv`` (angular, linear), lever arms ``r0`` of the start pose."""
-        vel = np.zeros(idx.shape + (3,))
-        t = self.vertex_type[idx]
-        o = self.vertex_owner[idx]
-        p = t == _PARTICLE
-        if len(vp):
-            vel[p] = vp[o[p]]
-        b = t == _BODY
-        if len(bv):
-            body = o[b]
-            vel[b] = bv[body, 3:6] + cross(bv[body, :3], r0[idx[b] - self.shape_offset])
-        return vel
-
-    def _velocities_at(self, idx, toi, t_p, t_b, before, after, r0):
-        """(C, 4, 3) vertex velocities at each contact's time ``toi`` [s]: the ``before``
-        (particle, body) velocities (``v-``) while it precedes its owner's earliest contact time
-        (``t_p``, ``t_b``), the ``after`` ones from then on."""
-        v_before = self._vertex_velocities(idx, *before, r0)
-        v_after = self._vertex_velocities(idx, *after, r0)
-        t = self.vertex_type[idx]
-        o = self.vertex_owner[idx]
-        owner_t = np.full(idx.shape, np.inf)
-        p = t == _PARTICLE
-        owner_t[p] = t_p[o[p]]
-        b = t == _BODY
-        owner_t[b] = t_b[o[b]]
-        return np.where((toi[:, None] < owner_t)[..., None], v_before, v_after)
-
-    def _approach(self, idx, w, n, vel, x0, x1, h, at_end):
-        """Normal relative velocities (C,) at the contacts and whether each CCD hit approaches:
-        by its velocities at ``t*`` or along the straight paths ``x0 -> x1`` checked by CCD
-        (their mean velocity over the substep decides whether the primitives pass through). A
-        contact already in the set at the very end of the substep (``at_end`` (C,) bool) that
-        leaves faster than the separation speed ``delta / h`` is judged by its velocities only:
-        its path ends on the contact instead of passing through it, and judging it by the path
-        re-added it every round until the impact-zone fail-safe froze it (an elastic bounce off a
-        wall stopped dead). Slower ones (inelastic contacts) keep the path test and the fail-safe."""
-        vn = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, vel), n)
-        vn_path = np.einsum("cd,cd->c", np.einsum("ck,ckd->cd", w, (x1[idx] - x0[idx]) / h), n)
-        # below -APPROACH_EPS relative: rounding of an exactly separating pair is not an approach
-        eps = APPROACH_EPS * (np.abs(vel).max(axis=(1, 2)) + self._sep_speed)
-        leaving = at_end & (vn > self._sep_speed)
-        return vn, (vn < -eps) | ((vn_path < -eps) & ~leaving)
-
-    def _solve(self, cs: _Contacts, vp, bv, lever: wp.array, inv_inertia_w: wp.array, rows=None):
-        """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
-        updates ``vp``, ``bv`` (the velocities after the impulses) in place and the accumulated
-        impulses of ``cs``. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row):
-        device arrays of the vertices' lever arms (:meth:`_pose`) and the bodies' world inverse
-        inertia tensors at the start pose. Its other arrays are the handler's reused buffers (no
-        allocation). ``rows``: device arrays (vertex indices, kinds, weights, normals, targets)
-        that hold the set's rows already (:meth:`_start_geometry`'s for the first set)."""
-        if len(cs) == 0:
-            return
-        put = self._staging.put
-        if rows is None:
-            rows = (put("idx", cs.idx, wp.vec4i), put("kind", cs.kind, wp.int32), put("w", cs.w, wp.vec4d),
-                    put("n", cs.n, wp.vec3d), put("target", cs.target, wp.float64))
-        P, B, C = len(vp), len(bv), len(cs)
-        # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
-        # never writes the shared zero input passed for their velocities
-        vp_w = put("vp", vp, wp.vec3d) if P else self._replay.empty_vec
-        lin_w, ang_w = (put("lin", bv[:, 3:6], wp.vec3d), put("ang", bv[:, 0:3], wp.vec3d)) if B else \
-            (self._replay.empty_vec, self._replay.empty_vec)
-        jn = put("jn", cs.jn, wp.float64)
-        jt = put("jt", cs.jt, wp.vec3d)
-        sweeps = self._staging.empty("sweeps", 1, wp.int32)
-        tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
-        idx_w, kind_w, w_w, n_w, target_w = rows
-        self._launches.launch("solve", solve_contacts_kernel, 1, [
-            len(cs), idx_w, w_w, n_w, target_w, kind_w,
-            self._replay.vertex_type, self._replay.vertex_owner,
-            lever, 0,  # indexed by vertex
-            self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
-            float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
-            # scratch: the contacts' constants over the sweeps
-            self._staging.empty("contact_mass", len(cs), wp.float64),
-            self._staging.empty("contact_particles", len(cs), wp.vec4i),
-            self._staging.empty("contact_bodies", len(cs), wp.vec2i),
-            self._staging.empty("contact_body_weight", len(cs), wp.vec2d),
-            self._staging.empty("contact_lever", 2 * len(cs), wp.vec3d),
-            vp_w, lin_w, ang_w, jn, jt, sweeps,
-        ])
-        if P:
-            vp[:] = host(vp_w)[:P]
-        if B:
-            bv[:, 3:6] = host(lin_w)[:B]
-            bv[:, 0:3] = host(ang_w)[:B]
-        cs.jn, cs.jt = host(jn)[:C].copy(), host(jt)[:C].copy()
-        self.last_sweeps = int(host(sweeps)[0])
-
-    def _body_inertia_w(self, body_q):
-        """World inertia tensors R I R^T of the bodies at poses ``body_q``."""
-        if not self.n_bodies:
-            return np.zeros((0, 3, 3))
-        rot = quat_to_matrix(body_q[:, 3:7])
-        return rot @ self._body_inertia @ np.swapaxes(rot, 1, 2)
-
-    def _owner_times(self, cs: _Contacts, n_p: int, n_b: int):
-        """Earliest time of impact [s] per particle / body among the contacts of the set (inf
-        where none): its velocity switches from ``v-`` to ``v+`` then."""
-        # one slot past the owners takes the other kinds' vertices (no masks by kind)
-        t_p = np.full(n_p + 1, np.inf)
-        t_b = np.full(n_b + 1, np.inf)
-        if len(cs):
-            idx = cs.idx.ravel()
-            at_start = not cs.toi.any()  # proximity contacts only (resting contact): all at 0
-            toi = None if at_start else np.repeat(cs.toi, 4)
-            if n_p:
-                p = cs.w.ravel() != 0
-                if at_start:
-                    t_p[self._particle_slot[idx[p]]] = 0.0
-                else:
-                    np.minimum.at(t_p, self._particle_slot[idx[p]], toi[p])
-            if n_b:
-                if at_start:
-                    t_b[self._body_slot[idx]] = 0.0
-                else:
-                    np.minimum.at(t_b, self._body_slot[idx], toi)
-        return t_p[:n_p], t_b[:n_b]
 
     # ------------------------------------------------------------------------------------------
 
@@ -948,75 +592,56 @@ class ImpulseCollisionHandler:
     def _note_contacts(self, record: _CallContacts) -> None:
         """Makes ``record`` the last call's contacts (:attr:`last_contacts`, ...)."""
         self._last = self._last_call = record
+        if record.reads_buffers:
+            self._records.add(record)
 
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
         self._note_contacts(_NO_CONTACTS)
         if self.broad_phase is None:
             return None
         self._check_states(state_in, state_pred)
+        # the buffers of earlier calls are about to be reused: the records still kept (saved
+        # statistics) take host copies of what they read
+        for record in list(self._records):
+            record.materialize()
+        self._records.clear()
         if self.differentiable:
             return self._call_replayed(state_in, state_pred, h)
         P, B = self.n_particles, self.n_bodies
-        # host views of the states (read only here: the result goes to the handler's own State)
-        x0p = host(state_in.particle_q)[:P] if P else np.zeros((0, 3))
-        bq0 = host(state_in.body_q) if B else np.zeros((0, 7))
-        vp_minus = host(state_pred.particle_qd)[:P] if P else np.zeros((0, 3))
-        bv_minus = host(state_pred.body_qd) if B else np.zeros((0, 6))
-        x1p_pred = host(state_pred.particle_q)[:P] if P else np.zeros((0, 3))
-        bq1_pred = host(state_pred.body_q) if B else np.zeros((0, 7))
-        vp, bv = vp_minus.copy(), bv_minus.copy()
-        # the vertices at the start (with the rigid ones' lever arms) and the predicted end
-        x0, lever0, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
-        r0 = lever0[self.shape_offset:self.static_offset]
-        inf_p, inf_b = self._inf_p, self._inf_b
-        zones = None  # the fail-safe's impact zones, made when it first acts (rare)
+        R = self._replay
+        # the vertices at the start (with the rigid ones' lever arms) and the predicted end;
+        # host views for the broad-phase cover's box tests (per vertex, not per contact)
+        x0, _, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
         delta = self.separation
         self._sep_speed = delta / h
-        e = self.model.restitution
-        cs = _Contacts(self._key_base)
-
-        def plan():
-            """End positions (particles, body poses, all vertices) of the current velocities and
-            contact times, and the contact times per particle / body."""
-            if not len(cs) and zones is None:
-                return x1p_pred, bq1_pred, inf_p, inf_b, x1_pred  # nothing changed the prediction
-            t_p, t_b = self._owner_times(cs, P, B)
-            if zones is not None:  # an impact zone moves rigidly over the whole substep
-                t_p[zones.particles] = 0.0
-                t_b[zones.bodies] = 0.0
-            x1p, bq1, x1 = self._plan(state_in, state_pred, t_p, t_b, vp, bv, h)
-            return x1p, bq1, t_p, t_b, x1
-
+        cs = self._contacts
+        cs.clear()
+        vm = (state_pred.particle_qd if P else R.empty_vec, state_pred.body_qd if B else R.empty_twist)
+        vel = None  # the velocities after the impulses (device buffers), made at the first contact
+        zones = None  # the fail-safe's impact zones, made when it first acts (rare)
+        zone_flags = None  # their members per particle / body (device), for the contact times
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
         self._cover(x0[:-1], x1_pred[:-1], delta)
         # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
         # and solved together
-        plane_d0 = self._plane_distances(x0)
-        kind, pair, idx = self._proximity_rows(x0, x1_pred, delta, plane_d0)
-        if len(kind):
-            w, n, target = self._start_geometry(kind, pair, idx, x0_w, lever0_w, state_pred, h)
-            cs.add(kind, pair, idx, w, n, np.zeros(len(kind)), target, copy=False, distinct=True)  # fresh arrays
-            self._solve(cs, vp, bv, lever0_w, inv_inertia_w, self._start_rows)  # the same rows, on the device
+        if self._proximity(x0, x1_pred, x0_w, lever0_w, vm, h, delta):
+            vel = self._velocities(state_pred)
+            self._solve(vel, lever0_w, inv_inertia_w)
 
-        # 2-5. CCD rounds on the planned motion
+        # 2-5. CCD rounds on the planned motion; the result is the last round's plan: every exit
+        # follows a plan with nothing changed after it (no contact added, no velocity solved,
+        # no zone grown)
         failsafe = False
+        planned = None
         for iteration in itertools.count():
-            x1p, bq1, t_p, t_b, x1 = plan()
-            kind, pair, idx, toi, _ = self._ccd_candidates(x0, x1, plane_d0)
-            if len(kind) == 0:
-                break
-            ee_mask = kind == 1
-            frac = toi[:, None, None]
-            y = x0[idx] + frac * (x1[idx] - x0[idx])
-            w = self._weights(y, kind)
-            n = self._normals(idx, x0, y, w, ee_mask)
-            on_plane = kind == 2
-            if on_plane.any():
-                n[on_plane] = self.planes[pair[on_plane, 1], :3]
-            vel = self._velocities_at(idx, toi * h, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
-            vn, approaching = self._approach(idx, w, n, vel, x0, x1, h, cs.at_end(kind, pair, toi * h, h))
-            if not approaching.any():
+            if cs.count or zones is not None:
+                planned = self._plan(state_in, state_pred, vel, zone_flags, h)
+                x1, x1_w, times = planned[2], planned[3], planned[4]
+            else:  # nothing changed the prediction
+                x1, x1_w, times = x1_pred, self._x1_pred_w, None
+            approaching = self._ccd_round(x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h)
+            if not approaching:
                 break
             if iteration >= self.max_iterations:
                 # fail-safe: rigid impact zones (Provot 1997, Bridson et al. 2002): everything
@@ -1025,46 +650,297 @@ class ImpulseCollisionHandler:
                 failsafe = True
                 if zones is None:
                     zones = _ImpactZones(P, B, self.particle_inv_mass)
-                if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
+                idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
+                if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
                     break  # only contacts inside rigidly moving zones remain (rounding)
-                zones.rigid_velocities(x0p, vp, bq0, bv, self.particle_inv_mass,
-                                       self._body_mass, self._body_inertia_w(bq0))
+                vel = vel if vel is not None else self._velocities(state_pred)
+                zone_flags = self._zone_motion(zones, state_in, vel)
                 continue
-            sel = approaching
-            self.ccd_events += int(sel.sum())
-            target = np.maximum(-e * vn[sel], SEPARATION_RATE * delta / h)
-            cs.add(kind[sel], pair[sel], idx[sel], w[sel], n[sel], toi[sel] * h, target)
-            self._solve(cs, vp, bv, lever0_w, inv_inertia_w)
+            self.ccd_events += approaching
+            vel = vel if vel is not None else self._velocities(state_pred)
+            self._add_hits(False, approaching)
+            self._solve(vel, lever0_w, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
-        # the result is the last round's plan: every exit of the rounds follows a plan() with
-        # nothing changed after it (no contact added, no velocity solved, no zone grown)
-        self._note_contacts(_CallContacts(cs, x0, x1, h, self.vertex_type))
-        if len(cs) == 0 and not failsafe:
+        if cs.count == 0 and not failsafe:
             return None
-        # the result in the handler's own State (reused: the integrator copies it out)
-        out = self._out
-        if P:
-            upload(out.particle_q, x1p)
-            upload(out.particle_qd, vp)
-        if B:
-            upload(out.body_q, bq1)
-            upload(out.body_qd, bv)
+        x1p_w, bq1_w, _, x1_w, _ = planned
+        self._note_contacts(_CallContacts(cs, x0_w, x1_w, h, self.vertex_type))
         return State(
-            particle_q=out.particle_q if P else state_pred.particle_q,
-            particle_qd=out.particle_qd if P else state_pred.particle_qd,
-            body_q=out.body_q if B else state_pred.body_q,
-            body_qd=out.body_qd if B else state_pred.body_qd,
+            particle_q=x1p_w if P else state_pred.particle_q,
+            particle_qd=vel[0] if P else state_pred.particle_qd,
+            body_q=bq1_w if B else state_pred.body_q,
+            body_qd=vel[1] if B else state_pred.body_qd,
         )
 
+    # ------------------------------------------------------------------------------------------
+    # the Gauss-Seidel response's stages on the device (per-contact arrays stay there)
+
+    def _velocities(self, state_pred: State):
+        """The device buffers (particle velocities (P,), body twists (B,)) that the impulses
+        update, holding the predicted velocities ``v-`` (:meth:`_velocities_of`)."""
+        return self._velocities_of(state_pred.particle_qd, state_pred.body_qd)
+
+    def _velocities_of(self, particle_qd, body_qd):
+        """The device buffers that the Gauss-Seidel impulses update (the result's velocity
+        arrays), holding ``particle_qd`` (P,) and ``body_qd`` (B,) (a model without particles /
+        bodies gets the replay's stand-ins, which no contact writes)."""
+        P, B, R = self.n_particles, self.n_bodies, self._replay
+        vp = copy_rows(self._result.particle_qd, particle_qd, P) if P else R.empty_vec
+        bv = copy_rows(self._result.body_qd, body_qd, B) if B else R.empty_twist
+        return vp, bv
+
+    def _sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> int:
+        """Puts the narrow phase's ``mesh_count`` hits (:attr:`CandidateNarrowPhase.hits`) and the
+        ``plane_count`` vertex-plane ones into :attr:`_hits` in ascending pair order (the
+        order of the contacts is then the same whatever the broad phase's candidate order or the
+        device's thread schedule); ``max_distance >= 0`` drops mesh pairs not nearer than it
+        (the proximity pass), ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s.
+        Returns the number of hits kept."""
+        H, nb, launch = self._hits, self._narrow.hits, self._launches.launch
+        total = mesh_count + plane_count
+        H.reserve(total)
+        zero(self._kept_counter)
+        launch("hit_keys", hit_keys_kernel, total, [
+            mesh_count, nb["kind"], nb["pairs"], nb["offset"], float(max_distance), self._plane_pairs_w,
+            self._key_base, H.keys, H.order, self._kept_counter])
+        kept = int(host(self._kept_counter)[0])
+        if self._hits.device.is_cpu or total <= DEVICE_SORT_MIN:
+            launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
+        else:
+            wp.utils.radix_sort_pairs(H.keys, H.order, total)
+        if kept:
+            launch("gather", gather_hits_kernel, kept, [
+                H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
+                self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
+                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row])
+        H.count = kept
+        return kept
+
+    def _hit_geometry(self, x0_w, x1_w, lever_w, vm, vel, times, h: float) -> None:
+        """Times [s], weights, normals and targets of :attr:`_hits` on the paths ``x0_w -> x1_w``
+        (:func:`kernels.contact.contact_geometry_kernel`, the replay's definition), with the
+        velocities ``v-`` (``vm``) before each owner's contact time (``times``: particle and body
+        device arrays; None: no contact yet) and ``vel`` after it (None: still ``v-``)."""
+        H, R = self._hits, self._replay
+        vc = vm if vel is None else vel
+        tp, tb = times if times is not None else (self._inf_time_p, self._inf_time_b)
+        self._launches.launch("hit_geometry", contact_geometry_kernel, H.count, [
+            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
+            H.plane, R.planes, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
+            float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
+            float(self.max_derivative), 0, H.toi, H.weights, H.normals, H.targets])
+
+    def _add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
+        """Grows the contact set by :attr:`_hits` (``all_new``: every hit, into the empty set;
+        else the ``approaching`` ones, :func:`kernels.contact_set.add_contacts_kernel`) with the
+        hits' geometry (``geometry``: (toi, weights, normals, targets) device arrays; default
+        the hits' own) and, with ``merge`` ((hit, keep toi, keep target) int32 arrays of the
+        grown set's rows), the decisions the taped replay's merge repeats."""
+        cs, H = self._contacts, self._hits
+        toi, w, n, target = geometry if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
+        cs.reserve(cs.count + (H.count if all_new else approaching))
+        record = merge is not None
+        merge = merge if record else (self._no_merge,) * 3
+        self._launches.launch("add", add_contacts_kernel, 1, [
+            H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
+            cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
+            cs.timed, cs.normal_impulse, cs.friction_impulse, H.source_row, cs.counter, *merge])
+        cs.count = int(host(cs.counter)[0])
+
+    def _plane_hits(self, x_w, delta: float | None) -> int:
+        """Vertex-plane hits into the plane buffers: with ``delta``, the proximity pairs at the
+        start positions ``x_w`` (which also keeps their plane distances); else the crossings of
+        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number."""
+        n = len(self._plane_vertex_ids)
+        if not (n and len(self.planes)):
+            return 0
+        zero(self._plane_counter)
+        if delta is not None:
+            self._launches.launch("plane_proximity", plane_proximity_kernel, n, [
+                x_w, self._plane_ids_w, self._plane_threshold_w, self._replay.planes, len(self.planes), float(delta),
+                self._plane_d0_w, self._plane_counter, self._plane_pairs_w])
+        else:
+            self._launches.launch("plane_crossing", plane_crossing_kernel, n, [
+                x_w, self._plane_ids_w, self._replay.planes, len(self.planes), self._plane_d0_w,
+                self._plane_counter, self._plane_pairs_w, self._plane_time_w])
+        return int(host(self._plane_counter)[0])
+
+    def _proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
+        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
+        device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
+        closest points are nearer than ``delta`` [m], then movable vertices nearer than ``delta``
+        to a plane, with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
+        direction, or for touching pairs the face / edges' normal turned against the relative
+        motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the velocities ``v-``).
+
+        The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
+        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
+        3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns the
+        number of contacts."""
+        if not self._proximity_hits(x0, x1_pred, x0_w, delta):
+            return 0
+        self._hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
+        self._add_hits(True, 0)
+        return self._contacts.count
+
+    def _proximity_hits(self, x0, x1_pred, x0_w, delta: float) -> int:
+        """:meth:`_proximity`'s detection: the pairs nearer than ``delta`` at the start into
+        :attr:`_hits` (sorted); returns their number."""
+        n = self.n_vertices
+        radius = None
+        if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
+            step = x1_pred[:n] - x0[:n]
+            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
+            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
+                radius = None
+        mesh = self._narrow.near_count(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test follows
+        planes = self._plane_hits(x0_w, delta)
+        return self._sorted_hits(mesh, planes, 0, delta) if mesh + planes else 0
+
+    def _ccd_round(self, x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
+        """One CCD round of the straight paths ``x0 -> x1`` (V + 1, 3) (device arrays ``x0_w``,
+        ``x1_w``; :meth:`_ccd_hits`), the hits' geometry at their detected times and whether they
+        approach (:meth:`_approach`). Returns the number of approaching hits."""
+        if not self._ccd_hits(x0, x1, x1_w, 2):
+            return 0
+        self._hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
+        H = self._hits
+        return self._approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h)
+
+    def _ccd_hits(self, x0, x1, x1_w, time_mode: int) -> int:
+        """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
+        vertex-face, edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a
+        movable vertex ends behind a plane, moving inwards) into :attr:`_hits` in pair order
+        (``time_mode``: :func:`kernels.contact_set.gather_hits_kernel`'s), each matched to its row
+        in the contact set. Returns their number."""
+        n, H, cs = self.n_vertices, self._hits, self._contacts
+        mesh = self._narrow.ccd_count(x0[:n], x1[:n], 0.0)
+        planes = self._plane_hits(x1_w, None)
+        if not mesh + planes:
+            return 0
+        count = self._sorted_hits(mesh, planes, time_mode)
+        if cs.count:
+            self._launches.launch("match", match_contacts_kernel, cs.count,
+                                  [cs.kind, cs.pair, self._key_base, H.keys, count, H.row])
+        return count
+
+    def _approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float) -> int:
+        """Whether each of :attr:`_hits` approaches (``geometry``: its (toi [s], weights, normals)
+        device arrays; :func:`kernels.contact_set.approach_kernel`, into the hits'
+        ``approaching``), with the velocities ``v-`` (``vm``) before each owner's contact time
+        (``times``; None: no contact yet) and ``vel`` after it. Returns how many approach."""
+        H, R = self._hits, self._replay
+        vc = vm if vel is None else vel
+        tp, tb = times if times is not None else (self._inf_time_p, self._inf_time_b)
+        zero(self._approach_counter)
+        self._launches.launch("approach", approach_kernel, H.count, [
+            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
+            self._contacts.toi, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self._sep_speed),
+            float(APPROACH_EPS), float(END_OF_SUBSTEP), self._approach_counter, H.approaching])
+        return int(host(self._approach_counter)[0])
+
+    def _solve(self, vel, lever: wp.array, inv_inertia_w: wp.array) -> None:
+        """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
+        updates the velocities ``vel`` (device buffers) and the set's accumulated impulses in
+        place. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row): the vertices'
+        lever arms and the bodies' world inverse inertia tensors at the start pose."""
+        cs = self._contacts
+        self._launch_solve(cs.count, cs.vertices, cs.kind, cs.weights, cs.normals, cs.targets, vel, lever,
+                           inv_inertia_w, cs.normal_impulse, cs.friction_impulse)
+
+    def _launch_solve(self, count, vertices, kind, weights, normals, targets, vel, lever, inv_inertia_w, jn, jt):
+        staging = self._staging
+        tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        sweeps = staging.empty("sweeps", 1, wp.int32)
+        R = self._replay
+        # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
+        # never writes the shared stand-in passed for their velocities
+        self._launches.launch("solve", solve_contacts_kernel, 1, [
+            count, vertices, weights, normals, targets, kind, R.vertex_type, R.vertex_owner,
+            lever, 0,  # indexed by vertex
+            self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
+            float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
+            # scratch: the contacts' constants over the sweeps
+            staging.empty("contact_mass", count, wp.float64), staging.empty("contact_particles", count, wp.vec4i),
+            staging.empty("contact_bodies", count, wp.vec2i), staging.empty("contact_body_weight", count, wp.vec2d),
+            staging.empty("contact_lever", 2 * count, wp.vec3d),
+            vel[0], vel[1], jn, jt, sweeps,
+        ])
+        self.last_sweeps = int(host(sweeps)[0])
+
+    def _plan(self, state_in: State, state_pred: State, vel, zone_flags, h: float):
+        """End positions of the substep ``h`` [s] for the contact set's earliest contact time per
+        particle / body (:func:`kernels.contact_set.owner_times_kernel`; 0 for the members of
+        impact zones, ``zone_flags`` (P,), (B,) int32 device arrays or None) and the velocities
+        after the impulses ``vel``: the replay's time-of-impact integration
+        (:func:`kernels.contact.time_of_impact_position`, ``time_of_impact_pose``), then the
+        vertices' positions (:meth:`_pose`).
+
+        Returns:
+            (particle positions (P,), body poses (B,), vertex positions (V + 1, 3) on the host
+            (a view on the CPU), their device array, (particle times, body times) [s] device
+            arrays): the handler's buffers (the next plan overwrites them).
+        """
+        empty, R, launch = self._staging.empty, self._replay, self._launches.launch
+        P, B, n = self.n_particles, self.n_bodies, self.n_vertices + 1
+        cs = self._contacts
+        tp, tb = self._particle_time_w, self._body_time_w
+        pz, bz = zone_flags if zone_flags is not None else (self._no_zone_p, self._no_zone_b)
+        launch("owner_reset", owner_times_reset_kernel, P + B, [P, pz, bz, tp, tb])
+        if cs.count:
+            launch("owner_times", owner_times_kernel, cs.count, [
+                cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, tp, tb])
+        x1p, bq1 = self._result.particle_q, self._result.body_q
+        x1 = empty("x_planned", n, wp.vec3d)
+        particles = [state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, vel[0], tp] if P else \
+            [R.empty_vec] * 4 + [self._no_time]
+        bodies = [state_in.body_q, state_pred.body_q, state_pred.body_qd, vel[1], tb] if B else \
+            [R.empty_pose, R.empty_pose, R.empty_twist, R.empty_twist, self._no_time]
+        # with bodies the vertices are posed by a second launch from the planned poses: in the
+        # fused one every rigid vertex would integrate its body's pose again (a body of a few
+        # hundred vertices made the plan 4x dearer); the same functions, so the same values
+        launch("plan", planned_substep_kernel, P + B + (0 if B else n), [
+            *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
+        if B:
+            x1 = self._pose("planned", x1p if P else None, bq1)[2]
+        return x1p, bq1, host(x1)[:n], x1, (tp, tb)
+
+    def _zone_motion(self, zones: "_ImpactZones", state_in: State, vel):
+        """Sets the velocities ``vel`` of the impact zones' members to their zone's
+        momentum-conserving rigid motion (the replay's kernels,
+        :meth:`collision.replay.ContactReplay.zone_velocities`, off the tape) and returns the
+        zones' member flags per particle / body (device int32 arrays)."""
+        P, B, R, m = self.n_particles, self.n_bodies, self._replay, self.model
+        particle_zone, body_zone, n_zones = zones.labels()
+        R.begin()  # its arena: nothing of this call lives there
+        with paused_tape():
+            vp, vb = R.zone_velocities(vel[0] if P else None, vel[1] if B else None, particle_zone, body_zone,
+                                       n_zones, state_in.particle_q if P else None, state_in.body_q if B else None,
+                                       m.body_mass if B else None, m.body_inertia if B else None)
+        if P:
+            copy_rows(vel[0], vp, P)
+        if B:
+            copy_rows(vel[1], vb, B)
+        return self._zone_flags(zones)
+
+    def _zone_flags(self, zones: "_ImpactZones"):
+        """The impact zones' members per particle / body (device int32 arrays, 1 in a zone)."""
+        put = self._staging.put
+        return (put("zone_p", zones.particles.astype(np.int32), wp.int32) if self.n_particles else self._no_zone_p,
+                put("zone_b", zones.bodies.astype(np.int32), wp.int32) if self.n_bodies else self._no_zone_b)
+
     def _call_replayed(self, state_in: State, state_pred: State, h: float) -> State | None:
-        """The response as decisions on the host and a taped replay on the device
+        """The response as decisions and a taped replay, both on the device
         (:class:`collision.replay.ContactReplay`): the result is the replay's, exact for the
         decided contact set (impulses from the active set's equations, not Gauss-Seidel sweeps),
-        and differentiable when a ``wp.Tape`` is recording. The fail-safe's impact zones are
-        taped too: their membership is decided here, their momentum-conserving rigid motion is
-        replayed (:meth:`collision.replay.ContactReplay.zone_velocities`), so every substep is
-        taped and ``untaped_substeps`` stays 0."""
+        and differentiable when a ``wp.Tape`` is recording. The decisions (the contact set, the
+        root slots, the active set and its repairs, the earliest contact per owner) are made by
+        the kernels of :mod:`kernels.contact_set` off the tape; the launches that depend smoothly
+        on the state are recorded. The fail-safe's impact zones are taped too: their membership is
+        decided on the host from the approaching hits (rare), their momentum-conserving rigid
+        motion is replayed (:meth:`collision.replay.ContactReplay.zone_velocities`), so every
+        substep is taped and ``untaped_substeps`` stays 0."""
         R = self._replay
         R.begin()  # the previous call's results were copied by the integrator: its arrays are free
         P, B = self.n_particles, self.n_bodies
@@ -1074,175 +950,161 @@ class ImpulseCollisionHandler:
         bq0_w = state_in.body_q if B else None
         vm_p = state_pred.particle_qd if P else None
         vm_b = state_pred.body_qd if B else None
+        vm = (vm_p if P else R.empty_vec, vm_b if B else R.empty_twist)
         X0, L0 = R.pose(xq0, bq0_w)
         inv_I = R.world_inverse_inertia(bq0_w)
-        x0 = X0.numpy()
-        vp_minus = vm_p.numpy() if P else np.zeros((0, 3))
-        bv_minus = vm_b.numpy() if B else np.zeros((0, 6))
-        vp, bv = vp_minus.copy(), bv_minus.copy()
-        r0 = L0.numpy()[self.shape_offset:self.shape_offset + self.n_shape] if self.n_shape else np.zeros((0, 3))
-        zones = _ImpactZones(P, B, self.particle_inv_mass)
         delta = self.separation
         self._sep_speed = delta / h
         mu = float(m.friction)
-        cs = _Contacts(self._key_base)
-        st = {"dev": None, "vp": vm_p, "vb": vm_b}
+        cs = self._contacts
+        cs.clear()
+        zones = None
+        zone_flags = (self._no_zone_p, self._no_zone_b)
+        st = {"dev": None, "vp": vm_p, "vb": vm_b}  # the taped contact geometry and velocities
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        launch = self._launches.launch
+
+        def current():
+            return (st["vp"] if P else R.empty_vec, st["vb"] if B else R.empty_twist)
+
         def owners():
-            t_p, t_b = self._owner_times(cs, P, B)
-            po = np.full(P, -1, dtype=np.int64)
-            bo = np.full(B, -1, dtype=np.int64)
-            if len(cs):
-                rows = np.repeat(np.arange(len(cs)), 4)
-                toi = np.repeat(cs.toi, 4)
-                t = self.vertex_type[cs.idx].ravel()
-                o = self.vertex_owner[cs.idx].ravel()
-                # the contact whose time is the owner's earliest; among ties (same t*: a corner
-                # on a face diagonal is several pairs) one whose time the replay differentiates,
-                # written last so it wins
-                order = np.argsort(np.repeat(cs.timed, 4), kind="stable")
-                rows, toi, t, o = rows[order], toi[order], t[order], o[order]
-                p = (t == _PARTICLE) & (cs.w.ravel()[order] != 0)
-                p[p] = toi[p] == t_p[o[p]]
-                po[o[p]] = rows[p]
-                b = t == _BODY
-                b[b] = toi[b] == t_b[o[b]]
-                bo[o[b]] = rows[b]
-            po[zones.particles] = -2
-            bo[zones.bodies] = -2
-            return po, bo, t_p, t_b
+            """Each owner's earliest contact time and its row (decisions: fresh arrays while a
+            tape records, which the taped geometry and integration read)."""
+            take = R.take
+            tp, tb = take(max(P, 1), wp.float64, zero=False, grad=False), take(max(B, 1), wp.float64, zero=False, grad=False)
+            po, bo = take(max(P, 1), wp.int32, zero=False, grad=False), take(max(B, 1), wp.int32, zero=False, grad=False)
+            kp, kb = self._staging.empty("owner_key_p", P, wp.int32), self._staging.empty("owner_key_b", B, wp.int32)
+            launch("r_owner_reset", owner_times_reset_kernel, P + B, [P, *zone_flags, tp, tb])
+            launch("r_owner_key_reset", owner_rows_reset_kernel, P + B, [P, kp, kb])
+            if cs.count:
+                launch("r_owner_times", owner_times_kernel, cs.count, [
+                    cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, tp, tb])
+                launch("r_owner_rows", owner_rows_kernel, cs.count, [
+                    cs.vertices, cs.weights, cs.toi, cs.timed, R.vertex_type, R.vertex_owner, tp, tb, kp, kb])
+            launch("r_owner_finish", owner_rows_finish_kernel, P + B, [P, kp, kb, *zone_flags, po, bo])
+            return po, bo, tp, tb
 
         def plan():
-            po, bo, t_p, t_b = owners()
+            po, bo, tp, tb = owners()
             toi = st["dev"][0] if st["dev"] is not None else R.take(1, wp.float64, grad=False)
             X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], bq0_w,
                                    state_pred.body_q if B else None, vm_b, st["vb"], po, bo, toi, h)
-            return X1p, BQ1, t_p, t_b
+            return X1p, BQ1, tp, tb
 
-        def geometry(kind, pair, idx, frac, source, X1, t_p, t_b):
-            rows = {"pairs": idx, "kinds": kind, "sources": source, "detected": frac,
-                    "plane_ids": np.where(kind == 2, pair[:, 1], 0)}
-            out = R.geometry(X0, X1, L0, rows, vm_p, st["vp"], vm_b, st["vb"], t_p, t_b, h, delta,
-                             SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative,
-                             bool(self.ccd_options))  # a generated narrow phase numbers roots its own way
-            return out, [a.numpy()[: len(kind)] for a in out]
+        def geometry(X1, tp, tb):
+            H = self._hits
+            rows = {"vertices": H.vertices, "kind": H.kind, "source": H.source, "detected": H.detected, "plane": H.plane}
+            return R.geometry(X0, X1, L0, rows, H.count, vm_p, st["vp"], vm_b, st["vb"], tp, tb, h, delta,
+                              SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative,
+                              bool(self.ccd_options))  # a generated narrow phase numbers roots its own way
 
-        def add(sel, out, host, kind, pair, idx, source):
-            toi_h, w_h, n_h, tg_h = host
-            new_index, keep_toi, keep_tg = cs.add(kind[sel], pair[sel], idx[sel], w_h[sel], n_h[sel], toi_h[sel],
-                                                  tg_h[sel], np.isin(source[sel], (1, 2, 3, 6)))
-            pos = np.flatnonzero(sel)
-            full = np.where(new_index >= 0, pos[np.maximum(new_index, 0)], -1)
-            st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2]), full, keep_toi, keep_tg)
+        def add(out, all_new: bool, approaching: int):
+            take, c = R.take, cs.count + (self._hits.count if all_new else approaching)
+            merge = (take(c, wp.int32, zero=False, grad=False), take(c, wp.int32, zero=False, grad=False),
+                     take(c, wp.int32, zero=False, grad=False))
+            self._add_hits(all_new, approaching, out, merge)
+            st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2]), *merge, cs.count)
 
         def exact():
-            # decide: the active set from projected Gauss-Seidel, then replay the exact normal
-            # solve and repair the set (drop pulling contacts, add violated ones) until it holds
+            # decide: the active set from projected Gauss-Seidel on top of the current velocities,
+            # then replay the exact normal solve and repair the set (drop pulling contacts, add
+            # violated ones) until it holds
+            C, take = cs.count, R.take
             with paused_tape():
-                self._solve(cs, vp, bv, L0, inv_I)
-            mobile = ((cs.w != 0) & self._mobile_vertex[cs.idx]).any(axis=1)
-            active = (cs.jn > 0) & mobile
-            taped = active.copy()  # the set whose solve the tape holds (the first trial's)
+                dec = self._velocities_of(*current())
+                self._solve(dec, L0, inv_I)
+            mobile = self._staging.empty("mobile_rows", C, wp.int32)
+            active = take(C, wp.int32, zero=False, grad=False)
+            launch("r_initial_active", initial_active_kernel, C, [
+                cs.vertices, cs.weights, cs.normal_impulse, self._mobile_vertex_w, mobile, active])
+            taped = active  # the set whose solve the tape holds (the first trial's)
             tape = active_tape()
+            changes = self._staging.empty("active_changes", 1, wp.int32)
             for iteration in range(ACTIVE_SET_ITERATIONS):
-                share = self._friction_share(cs, active) if mu > 0 else None
+                share = self._friction_share(active) if mu > 0 else None
                 # the first trial is recorded (usually it is the final one); repair trials stay off
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
+                    vp_d, vb_d, normal = R.solve(st["dev"], cs.vertices, cs.kind, C, active, L0, inv_I, vm_p, vm_b,
+                                                 share)
                 if iteration == 0:
                     recorded = (vp_d, vb_d, normal)
-                jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
-                vrel = np.einsum("ck,ckd->cd", cs.w, self._vertex_velocities(
-                    cs.idx, vp_d.numpy() if P else vp, vb_d.numpy() if B else bv, r0))
-                vn = np.einsum("cd,cd->c", vrel, cs.n)
-                scale = max(float(np.abs(jn).max()), 1e-300)
-                new = active.copy()
-                new[active & (jn < -1e-9 * scale)] = False
-                new[~active & mobile & (vn < cs.target - tol)] = True
-                if (new == active).all():
+                repaired = take(C, wp.int32, zero=False, grad=False)
+                launch("r_active_update", active_set_update_kernel, 1, [
+                    C, cs.vertices, cs.weights, cs.normals, cs.targets, mobile, active, normal, R.vertex_type,
+                    R.vertex_owner, L0, vp_d if P else R.empty_vec, vb_d if B else R.empty_twist, float(tol),
+                    float(ACTIVE_SET_PULLING), self._staging.empty("active_jn", C, wp.float64), repaired, changes])
+                if not int(host(changes)[0]):
                     break
                 if iteration == ACTIVE_SET_ITERATIONS - 1:
                     self.unsettled_active_sets += 1
                     break  # the last trial's set stands, taped or not: one forward function
-                active = new
+                active = repaired
                 self.active_set_repairs += 1
-            if tape is not None and not np.array_equal(taped, active):
+            if tape is not None and active is not taped and self._flags_differ(taped, active, C):
                 # the replay of the final active set, recorded
-                share = self._friction_share(cs, active) if mu > 0 else None
-                vp_d, vb_d, normal = R.solve(st["dev"], cs.idx, cs.kind, active, L0, inv_I, vm_p, vm_b, share)
-                jn = np.einsum("cd,cd->c", normal.numpy()[: len(cs)], cs.n)
+                share = self._friction_share(active) if mu > 0 else None
+                vp_d, vb_d, normal = R.solve(st["dev"], cs.vertices, cs.kind, C, active, L0, inv_I, vm_p, vm_b, share)
             elif tape is not None:
                 # the repairs came back to the first trial's set: its recorded solve (the same
                 # values) is the one the tape continues from, not the last, unrecorded trial
                 vp_d, vb_d, normal = recorded
             if P:
                 st["vp"] = vp_d
-                vp[:] = vp_d.numpy()
             if B:
                 st["vb"] = vb_d
-                bv[:] = vb_d.numpy()
-            cs.jn = np.where(active, jn, 0.0)
-            cs.jt = np.zeros_like(cs.jt)
+            launch("r_set_impulses", set_impulses_kernel, C, [
+                active, normal, cs.normals, cs.normal_impulse, cs.friction_impulse])
 
-        inf_p, inf_b = np.full(P, np.inf), np.full(B, np.inf)
         # 1. proximity contacts at the start of the substep
         with paused_tape():  # decisions: off the tape
             # one broad-phase query while the rounds' motion stays near the predicted one
+            x0 = host(X0)
             x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
             self._cover(x0[:nv], x1_pred[:nv], delta)
-            plane_d0 = self._plane_distances(x0)
-            kind, pair, idx = self._proximity_rows(x0, x1_pred, delta, plane_d0)
-        if len(kind):
-            zero = np.zeros(len(kind))
-            out, host = geometry(kind, pair, idx, zero, np.zeros(len(kind), dtype=np.int64), X0, inf_p, inf_b)
-            add(np.ones(len(kind), dtype=bool), out, host, kind, pair, idx, np.zeros(len(kind), dtype=np.int64))
+            found = self._proximity_hits(x0, x1_pred, X0, delta)
+        if found:
+            add(geometry(X0, self._inf_time_p, self._inf_time_b), True, 0)  # no contact time yet
             exact()
 
-        # 2-5. CCD rounds on the planned motion
+        # 2-5. CCD rounds on the planned motion; the result is the last round's plan: every exit
+        # follows a plan with nothing changed after it
         failsafe = False
-        X1 = None
         for iteration in itertools.count():
-            X1p, BQ1, t_p, t_b = plan()
+            X1p, BQ1, tp, tb = plan()
             X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
-            x1 = X1.numpy()
             with paused_tape():  # decisions: off the tape
-                kind, pair, idx, frac, source = self._ccd_candidates(x0, x1, plane_d0)
-            if len(kind) == 0:
+                count = self._ccd_hits(x0, host(X1), X1, 1)
+            if not count:
                 break
-            # times off the cubic (start, collinear, advancement) enter as constants
-            source = np.where(np.isin(source, (1, 2, 3, 6)), source, 4)
-            out, host = geometry(kind, pair, idx, frac, source, X1, t_p, t_b)
-            toi, w, n, _ = host
-            vel = self._velocities_at(idx, toi, t_p, t_b, (vp_minus, bv_minus), (vp, bv), r0)
-            _, approaching = self._approach(idx, w, n, vel, x0, x1, h, cs.at_end(kind, pair, toi, h))
-            if not approaching.any():
+            out = geometry(X1, tp, tb)
+            with paused_tape():
+                approaching = self._approach(X0, X1, L0, out[:3], vm, current(), (tp, tb), h)
+            if not approaching:
                 break
             if iteration >= self.max_iterations:
                 failsafe = True
-                if not zones.merge(self.vertex_type[idx[approaching]], self.vertex_owner[idx[approaching]]):
+                if zones is None:
+                    zones = _ImpactZones(P, B, self.particle_inv_mass)
+                idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
+                if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
                     break
                 # the zones' momentum-conserving rigid motion, on the tape (membership decided
-                # above); the host copies follow for the next round's decisions
+                # above)
                 particle_zone, body_zone, n_zones = zones.labels()
                 st["vp"], st["vb"] = R.zone_velocities(st["vp"], st["vb"], particle_zone, body_zone, n_zones, xq0,
                                                        bq0_w, m.body_mass if B else None,
                                                        m.body_inertia if B else None)
-                if P:
-                    vp[:] = st["vp"].numpy()
-                if B:
-                    bv[:] = st["vb"].numpy()
+                zone_flags = self._zone_flags(zones)
                 continue
-            self.ccd_events += int(approaching.sum())
-            add(approaching, out, host, kind, pair, idx, source)
+            self.ccd_events += approaching
+            add(out, False, approaching)
             exact()
         if failsafe:
             self.failsafe_count += 1
-        if len(cs) == 0 and not failsafe:
+        if cs.count == 0 and not failsafe:
             return None
-        X1p, BQ1, _, _ = plan()
-        x1 = R.pose(X1p if P else None, BQ1 if B else None)[0].numpy() if (cs.jn > 0).any() else None
-        self._note_contacts(_CallContacts(cs, x0, x1, h, self.vertex_type))
+        self._note_contacts(_CallContacts(cs, X0, X1, h, self.vertex_type))
         return State(
             particle_q=X1p if P else state_pred.particle_q,
             particle_qd=st["vp"] if P else state_pred.particle_qd,
@@ -1250,41 +1112,27 @@ class ImpulseCollisionHandler:
             body_qd=st["vb"] if B else state_pred.body_qd,
         )
 
-    def _friction_share(self, cs: _Contacts, active: np.ndarray) -> np.ndarray:
-        """Per contact: one over the largest number of active contacts that any particle or body
-        it moves takes part in (friction impulses of one pass are applied together)."""
-        P = self.n_particles
-        t = self.vertex_type[cs.idx]
-        o = self.vertex_owner[cs.idx]
-        node = np.where((t == _PARTICLE) & (cs.w != 0), o, np.where(t == _BODY, P + o, -1))
-        rows = np.repeat(np.arange(len(cs)), 4).reshape(-1, 4)
-        sel = active[:, None] & (node >= 0)
-        pairs = np.unique(np.column_stack([rows[sel], node[sel]]), axis=0) if sel.any() else np.zeros((0, 2), dtype=np.int64)
-        counts = np.bincount(pairs[:, 1], minlength=P + self.n_bodies + 1) if len(pairs) else np.zeros(P + self.n_bodies + 1)
-        per_slot = np.where(node >= 0, counts[np.maximum(node, 0)], 0)
-        most = np.maximum(per_slot.max(axis=1), 1)
-        return 1.0 / most
+    def _friction_share(self, active: wp.array) -> wp.array:
+        """Per contact of the set: one over the largest number of active contacts (``active``)
+        that any particle or body it moves takes part in (friction impulses of one pass are
+        applied together; :mod:`kernels.contact_set`). A fresh array while a tape records."""
+        cs, R, P = self._contacts, self._replay, self.n_particles
+        counts = self._staging.empty("share_counts", P + self.n_bodies + 1, wp.int32)
+        zero(counts)
+        share = R.take(cs.count, wp.float64, zero=False, grad=False)
+        launch = self._launches.launch
+        launch("share_count", friction_share_count_kernel, cs.count, [
+            cs.vertices, cs.weights, active, P, R.vertex_type, R.vertex_owner, counts])
+        launch("share", friction_share_kernel, cs.count, [
+            cs.vertices, cs.weights, P, R.vertex_type, R.vertex_owner, counts, share])
+        return share
 
-    @staticmethod
-    def _normals(idx, x0, y, w, edge_edge):
-        """Unit contact normals (side B -> side A) of CCD hits at positions ``y`` (C, 4, 3): the
-        face normal (vertex-face) or the edges' cross product (edge-edge), oriented by the
-        offset at the start; where those degenerate, the start offset itself."""
-        c = len(idx)
-        n = np.zeros((c, 3))
-        vf = ~edge_edge
-        n[vf] = cross(y[vf, 2] - y[vf, 1], y[vf, 3] - y[vf, 1])
-        n[edge_edge] = cross(y[edge_edge, 1] - y[edge_edge, 0], y[edge_edge, 3] - y[edge_edge, 2])
-        rel = np.einsum("ck,ckd->cd", w, x0[idx])
-        norm = row_norms(n)
-        scale = np.max(np.abs(y - y.mean(1, keepdims=True)), axis=(1, 2))
-        bad = norm <= 1e-12 * scale * scale
-        n[bad] = rel[bad]
-        norm = row_norms(n)
-        n = np.divide(n, norm[:, None], out=np.tile([0.0, 0.0, 1.0], (c, 1)), where=norm[:, None] > 0)
-        flip = np.einsum("cd,cd->c", n, rel) < 0
-        n[flip] *= -1
-        return n
+    def _flags_differ(self, a: wp.array, b: wp.array, count: int) -> bool:
+        """Whether the int flags ``a`` and ``b`` differ in one of their first ``count`` entries."""
+        counter = self._staging.empty("flags_differ", 1, wp.int32)
+        zero(counter)
+        self._launches.launch("flags_differ", flags_differ_kernel, count, [a, b, counter])
+        return bool(host(counter)[0])
 
 
 class _ImpactZones:
@@ -1351,37 +1199,3 @@ class _ImpactZones:
         particle_zone[members_p] = index[: len(members_p)]
         body_zone[members_b] = index[len(members_p):]
         return particle_zone, body_zone, len(free)
-
-    def rigid_velocities(self, x0p, vp, bq0, bv, particle_inv_mass, body_mass, body_inertia_w) -> None:
-        """Overwrites the velocities of zone members with their zone's rigid motion (in place;
-        the Gauss-Seidel response's fail-safe, not taped; the replayed response records the
-        same motion on the tape with :meth:`collision.replay.ContactReplay.zone_velocities`)."""
-        members_p = np.flatnonzero(self.particles)
-        members_b = np.flatnonzero(self.bodies)
-        roots_p = np.array([self._find(int(i)) for i in members_p], dtype=np.int64)
-        roots_b = np.array([self._find(int(self.P + i)) for i in members_b], dtype=np.int64)
-        for root in np.unique(np.concatenate([roots_p, roots_b])):
-            zp = members_p[roots_p == root]
-            zb = members_b[roots_b == root]
-            if root == self.world:
-                vp[zp] = 0.0
-                bv[zb] = 0.0
-                continue
-            mp = np.divide(1.0, particle_inv_mass[zp], out=np.zeros(len(zp)), where=particle_inv_mass[zp] > 0)
-            mb = body_mass[zb]
-            mass = mp.sum() + mb.sum()
-            centre = (mp @ x0p[zp] + mb @ bq0[zb, :3]) / mass
-            momentum = mp @ vp[zp] + mb @ bv[zb, 3:6]
-            rp = x0p[zp] - centre
-            rb = bq0[zb, :3] - centre
-            angular = (np.cross(rp, vp[zp]) * mp[:, None]).sum(0) + (np.cross(rb, bv[zb, 3:6]) * mb[:, None]).sum(0)
-            angular += np.einsum("bij,bj->i", body_inertia_w[zb], bv[zb, :3])
-            eye = np.eye(3)
-            inertia = np.einsum("p,pij->ij", mp, (rp * rp).sum(1)[:, None, None] * eye - rp[:, :, None] * rp[:, None, :])
-            inertia += body_inertia_w[zb].sum(0)
-            inertia += np.einsum("b,bij->ij", mb, (rb * rb).sum(1)[:, None, None] * eye - rb[:, :, None] * rb[:, None, :])
-            omega = np.linalg.pinv(inertia) @ angular  # pinv: a zone of collinear particles
-            linear = momentum / mass
-            vp[zp] = linear + np.cross(omega, rp)
-            bv[zb, 3:6] = linear + np.cross(omega, rb)
-            bv[zb, :3] = omega

@@ -142,12 +142,14 @@ def _apply_body_impulse(
     impulse: wp.vec3d,
     body_inv_mass: wp.array(dtype=wp.float64),
     body_inv_inertia: wp.array(dtype=wp.mat33d),
-    body_linear: wp.array(dtype=wp.vec3d),
-    body_angular: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
 ):
-    """The impulse of one side's rigid vertices (summed weight, weighted lever arm) on their body."""
-    body_linear[body] = body_linear[body] + (weight_sum * body_inv_mass[body]) * impulse
-    body_angular[body] = body_angular[body] + body_inv_inertia[body] * wp.cross(rho, impulse)
+    """The impulse of one side's rigid vertices (summed weight, weighted lever arm) on their body
+    (twist: angular, linear)."""
+    t = body_qd[body]
+    w = wp.spatial_top(t) + body_inv_inertia[body] * wp.cross(rho, impulse)
+    v = wp.spatial_bottom(t) + (weight_sum * body_inv_mass[body]) * impulse
+    body_qd[body] = wp.spatial_vectord(w[0], w[1], w[2], v[0], v[1], v[2])
 
 
 @wp.kernel
@@ -174,8 +176,7 @@ def solve_contacts_kernel(
     contact_body_weight: wp.array(dtype=wp.vec2d),
     contact_lever: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3d),
-    body_linear: wp.array(dtype=wp.vec3d),
-    body_angular: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
     normal_impulse: wp.array(dtype=wp.float64),
     friction_impulse: wp.array(dtype=wp.vec3d),
     sweeps_done: wp.array(dtype=wp.int32),
@@ -259,11 +260,13 @@ def solve_contacts_kernel(
             vrel = wp.vec3d(zero, zero, zero)
             for s in range(4):
                 if s == split and bodies[0] >= 0:
-                    vrel = vrel + body_weight[0] * body_linear[bodies[0]] + wp.cross(body_angular[bodies[0]], contact_lever[c + c])
+                    t0 = body_qd[bodies[0]]
+                    vrel = vrel + body_weight[0] * wp.spatial_bottom(t0) + wp.cross(wp.spatial_top(t0), contact_lever[c + c])
                 if p[s] >= 0:
                     vrel = vrel + w[s] * particle_qd[p[s]]
             if bodies[1] >= 0:
-                vrel = vrel + body_weight[1] * body_linear[bodies[1]] + wp.cross(body_angular[bodies[1]], contact_lever[c + c + 1])
+                t1 = body_qd[bodies[1]]
+                vrel = vrel + body_weight[1] * wp.spatial_bottom(t1) + wp.cross(wp.spatial_top(t1), contact_lever[c + c + 1])
             vn = wp.dot(vrel, n)
             worst = wp.max(worst, targets[c] - vn)
             jn_old = normal_impulse[c]
@@ -281,12 +284,12 @@ def solve_contacts_kernel(
             for s in range(4):
                 if s == split and bodies[0] >= 0:
                     _apply_body_impulse(bodies[0], body_weight[0], contact_lever[c + c], impulse,
-                                        body_inv_mass, body_inv_inertia, body_linear, body_angular)
+                                        body_inv_mass, body_inv_inertia, body_qd)
                 if p[s] >= 0:
                     particle_qd[p[s]] = particle_qd[p[s]] + (w[s] * particle_inv_mass[p[s]]) * impulse
             if bodies[1] >= 0:
                 _apply_body_impulse(bodies[1], body_weight[1], contact_lever[c + c + 1], impulse,
-                                    body_inv_mass, body_inv_inertia, body_linear, body_angular)
+                                    body_inv_mass, body_inv_inertia, body_qd)
         if worst <= tolerance:
             break
     sweeps_done[0] = sweep

@@ -302,31 +302,3 @@ def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
     x = wide._narrow.broad_phase.positions[0].numpy()
     wide._cover(x, x + 1.0, wide.separation)
     assert wide._cover_scale == len(scales) - 2
-
-
-def test_contact_sets_share_read_only_empty_rows_and_refuse_repeated_pairs():
-    """Every substep's contact set starts from shared read-only empty rows: the first add()
-    replaces them, later ones grow the set's own rows, and another set stays empty. A call
-    with the same pair twice is refused unless the caller vouches for distinct rows (the
-    proximity pass: each candidate pair once)."""
-    from collision.response import _Contacts
-
-    def rows(pairs, toi):
-        c = len(pairs)
-        w = np.tile([1.0, -1.0 / 3, -1.0 / 3, -1.0 / 3], (c, 1))
-        n = np.tile([0.0, 0.0, 1.0], (c, 1))
-        return (np.zeros(c, dtype=np.int64), np.array(pairs, dtype=np.int64), np.arange(4 * c).reshape(c, 4),
-                w, n, np.full(c, toi), np.full(c, 0.5))
-
-    a, b = _Contacts(100), _Contacts(100)
-    assert not a.jn.flags.writeable and a.jn is b.jn
-    a.add(*rows([(1, 2), (3, 4)], 0.0), copy=False, distinct=True)
-    a.jn = np.ones(2)  # as the solve leaves it
-    a.add(*rows([(3, 4), (5, 6)], 0.25))  # one pair again (earlier time kept), one new
-    assert len(a) == 3 and len(b) == 0 and len(_Contacts(100)) == 0
-    np.testing.assert_array_equal(a.toi, [0.0, 0.0, 0.25])
-    np.testing.assert_array_equal(a.jn, [1.0, 1.0, 0.0])
-    a.w[0, 0] = 2.0  # the set's own rows are writable
-    assert _Contacts.w.shape == (0, 4)
-    with pytest.raises(ValueError, match="appears twice"):
-        _Contacts(100).add(*rows([(1, 2), (1, 2)], 0.0))

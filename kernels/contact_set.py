@@ -1,0 +1,763 @@
+"""The collision response's contact bookkeeping on the device (Warp, float64): the decisions of
+"decide, then replay" (design.md) between the narrow phase and the impulse solve, so that no
+per-contact array crosses to the host within a substep.
+
+A substep's *hits* (one detection pass: the proximity pairs at the start, or one CCD round's
+crossings) are appended by the detection kernels through counters, then put into one canonical
+order (:func:`hit_keys_kernel`, :func:`sort_keys_kernel` and :func:`gather_hits_kernel`:
+ascending pair keys, the same order whatever the thread schedule or the broad phase's candidate
+order). The *contact set* (:class:`collision.contacts.Contacts`) grows by those hits
+(:func:`add_contacts_kernel`, sequential: new pairs are appended in the hits' order, a pair
+already in the set takes the new geometry and the earlier time). A pair is ``(kind, a, b)``:
+kind 0 vertex-face ``(vertex, face)``, 1 edge-edge ``(edge, edge)``, 2 vertex-plane
+``(vertex, plane)``; its key is ``(kind K + a) K + b`` for a base ``K`` above every index.
+"""
+
+from typing import Any
+
+import warp as wp
+
+from kernels.contact import (PAIR_VERTEX_PLANE, TIME_DETECTED, TIME_PLANE, TIME_START, VERTEX_BODY,
+                             VERTEX_PARTICLE, vertex_time, vertex_velocity)
+
+KEY_NONE = wp.constant(wp.int64(9223372036854775807))
+"""The key of a hit left out (sorts after every pair's key)."""
+
+
+@wp.func
+def pair_key(kind: wp.int32, pair: wp.vec2i, key_base: wp.int64) -> wp.int64:
+    """The one integer ``(kind K + a) K + b`` of the pair ``(kind, a, b)`` (``K = key_base``)."""
+    return (wp.int64(kind) * key_base + wp.int64(pair[0])) * key_base + wp.int64(pair[1])
+
+
+@wp.func
+def infinity() -> wp.float64:
+    return wp.float64(1.0e308) * wp.float64(10.0)
+
+
+@wp.kernel
+def hit_keys_kernel(
+    mesh_count: int,
+    mesh_kind: wp.array(dtype=wp.int32),
+    mesh_pairs: wp.array(dtype=wp.vec2i),
+    mesh_offset: wp.array(dtype=wp.vec3d),
+    max_distance: wp.float64,
+    plane_pairs: wp.array(dtype=wp.vec2i),
+    key_base: wp.int64,
+    keys: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+    kept: wp.array(dtype=wp.int32),
+):
+    """Sort keys of one detection pass's hits: the first ``mesh_count`` threads take the narrow
+    phase's (vertex-face / edge-edge) hits, the rest the vertex-plane ones. With
+    ``max_distance >= 0`` (the proximity pass) a mesh hit whose closest points are not nearer
+    than it (``|mesh_offset| < max_distance`` fails: the narrow phase's test had a hair of
+    slack) gets :data:`KEY_NONE`; ``kept[0]`` counts the others. ``order[i] = i``."""
+    i = wp.tid()
+    key = wp.int64(0)
+    if i < mesh_count:
+        key = pair_key(mesh_kind[i], mesh_pairs[i], key_base)
+        if max_distance >= wp.float64(0.0):
+            if not (wp.length(mesh_offset[i]) < max_distance):
+                key = KEY_NONE
+    else:
+        key = pair_key(wp.int32(PAIR_VERTEX_PLANE), plane_pairs[i - mesh_count], key_base)
+    keys[i] = key
+    order[i] = wp.int32(i)
+    if key != KEY_NONE:
+        wp.atomic_add(kept, 0, 1)
+
+
+@wp.func
+def _sift_down(keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32), start: int, end: int):
+    """Moves ``keys[start]`` (and its value) down the max-heap ``keys[0:end]``."""
+    root = start
+    while 2 * root + 1 < end:
+        child = 2 * root + 1
+        if child + 1 < end and keys[child] < keys[child + 1]:
+            child = child + 1
+        if keys[root] < keys[child]:
+            k = keys[root]
+            keys[root] = keys[child]
+            keys[child] = k
+            v = values[root]
+            values[root] = values[child]
+            values[child] = v
+            root = child
+        else:
+            root = end  # done
+
+
+@wp.kernel
+def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
+    """Heap sort of ``keys[0:count]`` (ascending) with their ``values``, launched with ``dim=1``:
+    on the CPU, where every launch runs its threads one after another, it costs a few
+    microseconds for the tens to hundreds of hits of a substep (Warp's radix sort has a fixed
+    cost of ~75 us there). The keys are distinct except :data:`KEY_NONE`, so the order is unique
+    up to the left-out hits."""
+    n = count
+    start = n / 2 - 1
+    while start >= 0:
+        _sift_down(keys, values, start, n)
+        start = start - 1
+    end = n - 1
+    while end > 0:
+        k = keys[0]
+        keys[0] = keys[end]
+        keys[end] = k
+        v = values[0]
+        values[0] = values[end]
+        values[end] = v
+        _sift_down(keys, values, 0, end)
+        end = end - 1
+
+
+@wp.kernel
+def gather_hits_kernel(
+    order: wp.array(dtype=wp.int32),
+    mesh_count: int,
+    mesh_kind: wp.array(dtype=wp.int32),
+    mesh_pairs: wp.array(dtype=wp.vec2i),
+    mesh_vertices: wp.array(dtype=wp.vec4i),
+    mesh_time: wp.array(dtype=Any),
+    mesh_source: wp.array(dtype=wp.int32),
+    plane_pairs: wp.array(dtype=wp.vec2i),
+    plane_time: wp.array(dtype=wp.float64),
+    time_mode: int,
+    dummy_vertex: int,
+    kind: wp.array(dtype=wp.int32),
+    pair: wp.array(dtype=wp.vec2i),
+    vertices: wp.array(dtype=wp.vec4i),
+    detected: wp.array(dtype=wp.float64),
+    source: wp.array(dtype=wp.int32),
+    plane: wp.array(dtype=wp.int32),
+    row: wp.array(dtype=wp.int32),
+):
+    """Hit ``tid`` in sorted order (``order``: :func:`sort_keys_kernel`'s values) from the narrow
+    phase's buffers or the vertex-plane ones: its kind, pair, vertex indices (vertex-plane: the
+    vertex and three times the dummy static vertex), detected time (fraction of the substep),
+    source (:func:`kernels.contact.contact_geometry_kernel`'s) and plane index (0 for mesh
+    pairs); ``row`` (the hit's row in the contact set, :func:`match_contacts_kernel`) is reset
+    to -1. ``time_mode``: 0 every hit is a proximity contact at ``t* = 0`` (source
+    ``TIME_START``); 1 a root's slot (1-3) for the narrow phase's hits at a root of the cubic,
+    ``TIME_PLANE`` for plane crossings (the replay recomputes and differentiates ``t*`` for
+    those) and ``TIME_DETECTED`` for the other hits; 2 every hit at its detected time
+    (``TIME_DETECTED``: the Gauss-Seidel response)."""
+    i = wp.tid()
+    j = int(order[i])
+    row[i] = -1
+    if j < mesh_count:
+        kind[i] = mesh_kind[j]
+        pair[i] = mesh_pairs[j]
+        vertices[i] = mesh_vertices[j]
+        plane[i] = 0
+        if time_mode == 0:
+            detected[i] = wp.float64(0.0)
+            source[i] = TIME_START
+        else:
+            detected[i] = wp.float64(mesh_time[j])
+            src = mesh_source[j]
+            # only a root's time is recomputed (and differentiated) by the replay: a hit at the
+            # start, a collinear or an advancement time enters as the detected constant
+            if time_mode == 2 or src < 1 or src > 3:
+                src = TIME_DETECTED
+            source[i] = src
+        return
+    p = plane_pairs[j - mesh_count]
+    kind[i] = PAIR_VERTEX_PLANE
+    pair[i] = p
+    vertices[i] = wp.vec4i(p[0], dummy_vertex, dummy_vertex, dummy_vertex)
+    plane[i] = p[1]
+    if time_mode == 0:
+        detected[i] = wp.float64(0.0)
+        source[i] = TIME_START
+    else:
+        detected[i] = plane_time[j - mesh_count]
+        source[i] = TIME_PLANE
+        if time_mode == 2:
+            source[i] = TIME_DETECTED
+
+
+@wp.kernel
+def plane_proximity_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    vertex_ids: wp.array(dtype=wp.int32),
+    threshold: wp.array(dtype=wp.float64),
+    planes: wp.array(dtype=wp.vec4d),
+    plane_count: int,
+    separation: wp.float64,
+    distance: wp.array(dtype=wp.float64),
+    counter: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+):
+    """Signed distances of plane-tested vertex ``vertex_ids[tid]`` at positions ``x`` from every
+    plane (``distance[tid planes + k]``, kept for the CCD rounds' crossing test) and the
+    vertex-plane proximity pairs ``(vertex, plane)``, appended through ``counter[0]``: distance
+    below ``threshold[tid] separation`` (a particle resting at the separation is no contact:
+    its threshold is a hair below 1)."""
+    i = wp.tid()
+    v = vertex_ids[i]
+    xv = x[v]
+    for k in range(plane_count):
+        p = planes[k]
+        d = wp.dot(xv, wp.vec3d(p[0], p[1], p[2])) - p[3]
+        distance[i * plane_count + k] = d
+        if d < threshold[i] * separation:
+            pairs[wp.atomic_add(counter, 0, 1)] = wp.vec2i(v, k)
+
+
+@wp.kernel
+def plane_crossing_kernel(
+    x1: wp.array(dtype=wp.vec3d),
+    vertex_ids: wp.array(dtype=wp.int32),
+    planes: wp.array(dtype=wp.vec4d),
+    plane_count: int,
+    start_distance: wp.array(dtype=wp.float64),
+    counter: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    time: wp.array(dtype=wp.float64),
+):
+    """Vertex-plane hits of the straight path from the start (signed distances
+    ``start_distance``, :func:`plane_proximity_kernel`) to ``x1``: the vertex ends behind the
+    plane, moving inwards; appended through ``counter[0]`` with the crossing time as a fraction
+    of the path, ``clamp(d0 / (d0 - d1), 0, 1)``."""
+    i = wp.tid()
+    v = vertex_ids[i]
+    xv = x1[v]
+    for k in range(plane_count):
+        p = planes[k]
+        d1 = wp.dot(xv, wp.vec3d(p[0], p[1], p[2])) - p[3]
+        d0 = start_distance[i * plane_count + k]
+        if d1 < wp.float64(0.0) and d1 < d0:
+            slot = wp.atomic_add(counter, 0, 1)
+            pairs[slot] = wp.vec2i(v, k)
+            time[slot] = wp.clamp(d0 / (d0 - d1), wp.float64(0.0), wp.float64(1.0))
+
+
+@wp.kernel
+def match_contacts_kernel(
+    contact_kind: wp.array(dtype=wp.int32),
+    contact_pair: wp.array(dtype=wp.vec2i),
+    key_base: wp.int64,
+    hit_keys: wp.array(dtype=wp.int64),
+    hit_count: int,
+    row: wp.array(dtype=wp.int32),
+):
+    """``row[h] = tid`` for the hit ``h`` whose pair is the pair of contact ``tid`` (binary search
+    in the hits' ascending ``hit_keys``; each pair is at most once in the set and once among the
+    hits, so no two threads write one entry)."""
+    c = wp.tid()
+    key = pair_key(contact_kind[c], contact_pair[c], key_base)
+    lo = int(0)
+    hi = hit_count
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if hit_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < hit_count:
+        if hit_keys[lo] == key:
+            row[lo] = wp.int32(c)
+
+
+@wp.kernel
+def approach_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    lever: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.vec4i),
+    toi: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    row: wp.array(dtype=wp.int32),
+    contact_toi: wp.array(dtype=wp.float64),
+    particle_qd_minus: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd_minus: wp.array(dtype=wp.spatial_vectord),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    separation_speed: wp.float64,
+    approach_eps: wp.float64,
+    end_of_substep: wp.float64,
+    counter: wp.array(dtype=wp.int32),
+    approaching: wp.array(dtype=wp.int32),
+):
+    """Whether CCD hit ``tid`` (time ``toi`` [s], weights and normal at it:
+    :func:`kernels.contact.contact_geometry_kernel`) approaches, counted in ``counter[0]``: its
+    normal relative velocity at ``t*`` (each vertex's ``v-`` before its owner's earliest
+    contact time, the current velocity from then on), or its mean over the straight paths
+    ``x0 -> x1`` that the CCD checked, is below ``-approach_eps`` times the largest vertex
+    velocity component plus the separation speed (rounding of an exactly separating or
+    tangential pair stays inside). A hit whose pair is in the contact set (``row``) at the very
+    end of the substep, detected there again, and leaving faster than the separation speed is
+    judged by its velocities alone: its path ends on the contact instead of passing through."""
+    i = wp.tid()
+    zero = wp.float64(0.0)
+    q = vertices[i]
+    w = weights[i]
+    n = normals[i]
+    ts = toi[i]
+    vrel = wp.vec3d(zero, zero, zero)
+    vpath = wp.vec3d(zero, zero, zero)
+    largest = zero
+    for k in range(4):
+        vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_minus, body_qd_minus)
+        if ts >= vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time):
+            vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd, body_qd)
+        vrel = vrel + w[k] * vk
+        vpath = vpath + w[k] * ((x1[q[k]] - x0[q[k]]) / h)
+        largest = wp.max(largest, wp.max(wp.abs(vk[0]), wp.max(wp.abs(vk[1]), wp.abs(vk[2]))))
+    vn = wp.dot(vrel, n)
+    vn_path = wp.dot(vpath, n)
+    eps = approach_eps * (largest + separation_speed)
+    leaving = 0
+    r = row[i]
+    if r >= 0:
+        end = h * (wp.float64(1.0) - end_of_substep)
+        if contact_toi[r] >= end and ts >= end and vn > separation_speed:
+            leaving = 1
+    result = 0
+    if vn < -eps:
+        result = 1
+    elif vn_path < -eps and leaving == 0:
+        result = 1
+    approaching[i] = wp.int32(result)
+    if result != 0:
+        wp.atomic_add(counter, 0, 1)
+
+
+@wp.kernel
+def add_contacts_kernel(
+    hit_count: int,
+    all_new: int,
+    approaching: wp.array(dtype=wp.int32),
+    row: wp.array(dtype=wp.int32),
+    kind: wp.array(dtype=wp.int32),
+    pair: wp.array(dtype=wp.vec2i),
+    vertices: wp.array(dtype=wp.vec4i),
+    source: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    targets: wp.array(dtype=wp.float64),
+    base: int,
+    record_merge: int,
+    contact_kind: wp.array(dtype=wp.int32),
+    contact_pair: wp.array(dtype=wp.vec2i),
+    contact_vertices: wp.array(dtype=wp.vec4i),
+    contact_toi: wp.array(dtype=wp.float64),
+    contact_weights: wp.array(dtype=wp.vec4d),
+    contact_normals: wp.array(dtype=wp.vec3d),
+    contact_targets: wp.array(dtype=wp.float64),
+    contact_timed: wp.array(dtype=wp.int32),
+    normal_impulse: wp.array(dtype=wp.float64),
+    friction_impulse: wp.array(dtype=wp.vec3d),
+    source_row: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    merge_hit: wp.array(dtype=wp.int32),
+    keep_toi: wp.array(dtype=wp.int32),
+    keep_target: wp.array(dtype=wp.int32),
+):
+    """Grows the contact set (``base`` rows) by the approaching hits (every hit with
+    ``all_new``: the proximity pass into the empty set), launched with ``dim=1`` so that new
+    pairs are appended in the hits' order on every device. A hit whose pair is in the set
+    (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
+    the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
+    larger target; a new pair is appended with zero accumulated impulses. ``source_row[h]``: the
+    set's row that hit ``h`` wrote (-1: none). ``count[0]``: the rows after the call.
+
+    With ``record_merge`` the decisions the taped replay repeats
+    (:func:`kernels.contact.merge_contacts_kernel`) are written per row of the grown set:
+    ``merge_hit`` the hit a row takes its geometry from (-1: unchanged), ``keep_toi`` /
+    ``keep_target`` whether it kept its own time / target."""
+    zero = wp.float64(0.0)
+    n = base
+    if record_merge != 0:
+        for r in range(base):
+            merge_hit[r] = -1
+            keep_toi[r] = 0
+            keep_target[r] = 0
+    for h in range(hit_count):
+        source_row[h] = -1
+        if all_new == 0 and approaching[h] == 0:
+            continue
+        r = int(-1)
+        if all_new == 0:
+            r = int(row[h])
+        src = source[h]
+        timed = int(0)
+        if (src >= 1 and src <= 3) or src == TIME_PLANE:
+            timed = 1
+        if r >= 0:
+            if record_merge != 0:
+                merge_hit[r] = wp.int32(h)
+                if contact_toi[r] <= toi[h]:
+                    keep_toi[r] = 1
+                if contact_targets[r] >= targets[h]:
+                    keep_target[r] = 1
+            contact_weights[r] = weights[h]
+            contact_normals[r] = normals[h]
+            if toi[h] < contact_toi[r]:
+                contact_toi[r] = toi[h]
+                contact_timed[r] = wp.int32(timed)
+            if targets[h] > contact_targets[r]:
+                contact_targets[r] = targets[h]
+        else:
+            r = n
+            n = n + 1
+            contact_kind[r] = kind[h]
+            contact_pair[r] = pair[h]
+            contact_vertices[r] = vertices[h]
+            contact_toi[r] = toi[h]
+            contact_weights[r] = weights[h]
+            contact_normals[r] = normals[h]
+            contact_targets[r] = targets[h]
+            contact_timed[r] = wp.int32(timed)
+            normal_impulse[r] = zero
+            friction_impulse[r] = wp.vec3d(zero, zero, zero)
+            if record_merge != 0:
+                merge_hit[r] = wp.int32(h)
+                keep_toi[r] = 0
+                keep_target[r] = 0
+        source_row[h] = wp.int32(r)
+    count[0] = wp.int32(n)
+
+
+@wp.kernel
+def owner_times_reset_kernel(
+    particle_count: int,
+    particle_zone: wp.array(dtype=wp.int32),
+    body_zone: wp.array(dtype=wp.int32),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+):
+    """Before :func:`owner_times_kernel`: each particle's (first ``particle_count`` threads) and
+    body's earliest contact time is inf, or 0 for a member of an impact zone (nonzero zone
+    flag: it moves rigidly over the whole substep)."""
+    i = wp.tid()
+    if i < particle_count:
+        t = infinity()
+        if particle_zone[i] != 0:
+            t = wp.float64(0.0)
+        particle_time[i] = t
+        return
+    b = i - particle_count
+    t = infinity()
+    if body_zone[b] != 0:
+        t = wp.float64(0.0)
+    body_time[b] = t
+
+
+@wp.kernel
+def owner_times_kernel(
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    toi: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+):
+    """Earliest contact time [s] per particle (a vertex with a nonzero weight) and per body (any
+    of its vertices) over the contact set's row ``tid``: the velocity switches from ``v-`` to
+    ``v+`` then (a minimum: the same on every device whatever the order)."""
+    c = wp.tid()
+    q = vertices[c]
+    w = weights[c]
+    t = toi[c]
+    for s in range(4):
+        v = q[s]
+        kind = vertex_type[v]
+        if kind == VERTEX_PARTICLE:
+            if w[s] != wp.float64(0.0):
+                wp.atomic_min(particle_time, vertex_owner[v], t)
+        elif kind == VERTEX_BODY:
+            wp.atomic_min(body_time, vertex_owner[v], t)
+
+
+OWNER_TIMED = wp.constant(1 << 30)
+"""Added to a contact row in :func:`owner_rows_kernel`'s keys when its time is differentiated
+(rows below 2^30)."""
+
+
+@wp.kernel
+def owner_rows_reset_kernel(particle_count: int, particle_key: wp.array(dtype=wp.int32),
+                            body_key: wp.array(dtype=wp.int32)):
+    """-1 (no contact) for each particle's (first ``particle_count`` threads) and body's key."""
+    i = wp.tid()
+    if i < particle_count:
+        particle_key[i] = -1
+    else:
+        body_key[i - particle_count] = -1
+
+
+@wp.kernel
+def owner_rows_kernel(
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    toi: wp.array(dtype=wp.float64),
+    timed: wp.array(dtype=wp.int32),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    particle_time: wp.array(dtype=wp.float64),
+    body_time: wp.array(dtype=wp.float64),
+    particle_key: wp.array(dtype=wp.int32),
+    body_key: wp.array(dtype=wp.int32),
+):
+    """The contact row whose time is its owner's earliest (:func:`owner_times_kernel`), per
+    particle / body, as the largest key ``row + OWNER_TIMED timed``: among ties (the same
+    ``t*``: a corner on a face diagonal is several pairs) a row whose time the replay
+    differentiates, then the last row (a maximum: the same on every device)."""
+    c = wp.tid()
+    q = vertices[c]
+    w = weights[c]
+    t = toi[c]
+    key = wp.int32(c)
+    if timed[c] != 0:
+        key = key + OWNER_TIMED
+    for s in range(4):
+        v = q[s]
+        kind = vertex_type[v]
+        o = vertex_owner[v]
+        if kind == VERTEX_PARTICLE:
+            if w[s] != wp.float64(0.0) and t == particle_time[o]:
+                wp.atomic_max(particle_key, o, key)
+        elif kind == VERTEX_BODY:
+            if t == body_time[o]:
+                wp.atomic_max(body_key, o, key)
+
+
+@wp.kernel
+def owner_rows_finish_kernel(
+    particle_count: int,
+    particle_key: wp.array(dtype=wp.int32),
+    body_key: wp.array(dtype=wp.int32),
+    particle_zone: wp.array(dtype=wp.int32),
+    body_zone: wp.array(dtype=wp.int32),
+    particle_row: wp.array(dtype=wp.int32),
+    body_row: wp.array(dtype=wp.int32),
+):
+    """Each particle's / body's contact row for the time-of-impact integration
+    (:func:`kernels.contact.time_of_impact_particles_kernel`): -1 none, -2 a member of an impact
+    zone (nonzero zone flag), else the row of :func:`owner_rows_kernel`'s key."""
+    i = wp.tid()
+    if i < particle_count:
+        k = particle_key[i]
+        if k >= 0:
+            k = k % OWNER_TIMED
+        if particle_zone[i] != 0:
+            k = -2
+        particle_row[i] = k
+        return
+    b = i - particle_count
+    k = body_key[b]
+    if k >= 0:
+        k = k % OWNER_TIMED
+    if body_zone[b] != 0:
+        k = -2
+    body_row[b] = k
+
+
+@wp.func
+def _mobile_row(q: wp.vec4i, w: wp.vec4d, mobile_vertex: wp.array(dtype=wp.int32)) -> int:
+    """Whether a contact moves something: a vertex with a nonzero weight that an impulse can
+    move (a rigid vertex or an unpinned particle)."""
+    for s in range(4):
+        if w[s] != wp.float64(0.0) and mobile_vertex[q[s]] != 0:
+            return 1
+    return 0
+
+
+@wp.kernel
+def initial_active_kernel(
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normal_impulse: wp.array(dtype=wp.float64),
+    mobile_vertex: wp.array(dtype=wp.int32),
+    mobile: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    """The first active set of the exact solve: the contacts whose Gauss-Seidel normal impulse
+    ended positive and that move something (``mobile``, kept for
+    :func:`active_set_update_kernel`)."""
+    c = wp.tid()
+    m = _mobile_row(vertices[c], weights[c], mobile_vertex)
+    mobile[c] = wp.int32(m)
+    a = 0
+    if m != 0 and normal_impulse[c] > wp.float64(0.0):
+        a = 1
+    active[c] = wp.int32(a)
+
+
+@wp.kernel
+def active_set_update_kernel(
+    count: int,
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    targets: wp.array(dtype=wp.float64),
+    mobile: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+    normal: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    tolerance: wp.float64,
+    pulling: wp.float64,
+    normal_scratch: wp.array(dtype=wp.float64),
+    repaired: wp.array(dtype=wp.int32),
+    changes: wp.array(dtype=wp.int32),
+):
+    """The active set's repair after an exact solve (launched with ``dim=1``: the rule needs the
+    largest normal impulse first): an active contact whose normal impulse ``normal . n`` pulls
+    (below ``-pulling`` times the largest magnitude) leaves the set; an inactive one that moves
+    something and whose normal relative velocity after the solve (``particle_qd``, ``body_qd``)
+    is below its target by more than ``tolerance`` joins it. ``repaired``: the new set;
+    ``changes[0]``: how many contacts changed."""
+    zero = wp.float64(0.0)
+    largest = zero
+    for c in range(count):
+        jn = wp.dot(normal[c], normals[c])
+        normal_scratch[c] = jn
+        largest = wp.max(largest, wp.abs(jn))
+    largest = wp.max(largest, wp.float64(1.0e-300))
+    n_changes = int(0)
+    for c in range(count):
+        a = active[c]
+        new = a
+        if a != 0:
+            if normal_scratch[c] < -pulling * largest:
+                new = 0
+        elif mobile[c] != 0:
+            q = vertices[c]
+            w = weights[c]
+            vrel = wp.vec3d(zero, zero, zero)
+            for s in range(4):
+                vrel = vrel + w[s] * vertex_velocity(q[s], vertex_type, vertex_owner, lever, particle_qd, body_qd)
+            if wp.dot(vrel, normals[c]) < targets[c] - tolerance:
+                new = 1
+        repaired[c] = new
+        if new != a:
+            n_changes = n_changes + 1
+    changes[0] = wp.int32(n_changes)
+
+
+@wp.kernel
+def flags_differ_kernel(a: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.int32), counter: wp.array(dtype=wp.int32)):
+    """Counts in ``counter[0]`` the entries where the flags ``a`` and ``b`` differ."""
+    i = wp.tid()
+    if (a[i] != 0) != (b[i] != 0):
+        wp.atomic_add(counter, 0, 1)
+
+
+@wp.kernel
+def set_impulses_kernel(
+    active: wp.array(dtype=wp.int32),
+    normal: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    normal_impulse: wp.array(dtype=wp.float64),
+    friction_impulse: wp.array(dtype=wp.vec3d),
+):
+    """The contact set's accumulated impulses after an exact solve: the normal impulse of an
+    active contact (``normal . n``), 0 for the others, no friction impulse (the next
+    Gauss-Seidel pass starts from them)."""
+    c = wp.tid()
+    jn = wp.float64(0.0)
+    if active[c] != 0:
+        jn = wp.dot(normal[c], normals[c])
+    normal_impulse[c] = jn
+    friction_impulse[c] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.func
+def _share_node(q: wp.vec4i, w: wp.vec4d, s: int, particle_count: int, vertex_type: wp.array(dtype=wp.int32),
+                vertex_owner: wp.array(dtype=wp.int32)) -> int:
+    """The particle (a vertex with a nonzero weight) or body (``particle_count`` + body) that
+    slot ``s`` of a contact moves, or -1."""
+    v = q[s]
+    kind = vertex_type[v]
+    if kind == VERTEX_PARTICLE and w[s] != wp.float64(0.0):
+        return int(vertex_owner[v])
+    if kind == VERTEX_BODY:
+        return particle_count + int(vertex_owner[v])
+    return -1
+
+
+@wp.kernel
+def friction_share_count_kernel(
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    active: wp.array(dtype=wp.int32),
+    particle_count: int,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+):
+    """How many active contacts move each particle / body (each contact counted once per node)."""
+    c = wp.tid()
+    if active[c] == 0:
+        return
+    q = vertices[c]
+    w = weights[c]
+    for s in range(4):
+        node = _share_node(q, w, s, particle_count, vertex_type, vertex_owner)
+        if node >= 0:
+            seen = int(0)
+            for r in range(s):
+                if _share_node(q, w, r, particle_count, vertex_type, vertex_owner) == node:
+                    seen = 1
+            if seen == 0:
+                wp.atomic_add(node_count, node, 1)
+
+
+@wp.kernel
+def friction_share_kernel(
+    vertices: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    particle_count: int,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+    share: wp.array(dtype=wp.float64),
+):
+    """Per contact: one over the largest number of active contacts that any particle or body it
+    moves takes part in (:func:`kernels.contact.friction_impulses_kernel` applies the friction
+    impulses of one pass together)."""
+    c = wp.tid()
+    q = vertices[c]
+    w = weights[c]
+    most = int(1)
+    for s in range(4):
+        node = _share_node(q, w, s, particle_count, vertex_type, vertex_owner)
+        if node >= 0:
+            most = wp.max(most, int(node_count[node]))
+    share[c] = wp.float64(1.0) / wp.float64(most)
+
+
+@wp.kernel
+def active_unknowns_kernel(
+    count: int,
+    active: wp.array(dtype=wp.int32),
+    unknowns: wp.array(dtype=wp.int32),
+    contact_unknown: wp.array(dtype=wp.int32),
+    unknown_count: wp.array(dtype=wp.int32),
+):
+    """The exact solve's unknowns (launched with ``dim=1``, in row order): ``unknowns`` the
+    active contacts, ``contact_unknown[c]`` each contact's unknown (-1 inactive),
+    ``unknown_count[0]`` their number."""
+    n = int(0)
+    for c in range(count):
+        if active[c] != 0:
+            unknowns[n] = wp.int32(c)
+            contact_unknown[c] = wp.int32(n)
+            n = n + 1
+        else:
+            contact_unknown[c] = -1
+    unknown_count[0] = wp.int32(n)
