@@ -111,6 +111,9 @@ class ContactReplay:
         self.empty_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
         self.empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self.empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
+        self._no_int = wp.zeros(1, dtype=wp.int32, device=device)
+        self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=device)
+        self._no_float = wp.zeros(1, dtype=wp.float64, device=device)
         self.largest_system = 0
         self._arena = Arena(device)  # the arrays of calls without a tape
 
@@ -131,6 +134,8 @@ class ContactReplay:
         response without gradients allocates no memory once its largest sizes have been met),
         zeroed unless ``zero`` is False (the caller fills it)."""
         if any_tape():
+            if not zero and not (grad and self._grad()):  # a decision the caller fills: no memset
+                return wp.empty(shape, dtype=dtype, device=self.device)
             return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad and self._grad())
         return self._arena.take(shape, dtype, zero)
 
@@ -157,36 +162,44 @@ class ContactReplay:
         """``a`` for a launch that the tape may record: a fresh copy of its first ``n`` rows
         while a tape records or is paused (``a`` is a buffer of the decisions that a later call
         overwrites, and the tape's backward reads what its launches read), else ``a`` itself."""
-        if not any_tape():
+        if not any_tape() or getattr(a, "_frozen", False):
             return a
         out = wp.empty(max(n, 1), dtype=a.dtype, device=self.device)
         if n:
             with paused_tape():
                 wp.copy(out, a, count=n)
+        out._frozen = True  # a copy of its own: frozen() passes it on as it is
         return out
 
     # ------------------------------------------------------------------ stages
-    def pose(self, particle_q, body_q):
-        """World positions and lever arms of all collidable vertices (+ the dummy vertex)."""
+    def pose_start(self, particle_q, body_q):
+        """World positions and lever arms of all collidable vertices (+ the dummy vertex) and the
+        bodies' world inverse inertia tensors (a dummy row when there is no body), in one launch
+        (:func:`kernels.contact.pose_start_kernel`)."""
         n = self.n_vertices + 1
+        bodies = body_q.shape[0] if body_q is not None else 0
         x = self._zeros(n, wp.vec3d)
         lever = self._zeros(n, wp.vec3d)
+        inv_inertia = self._zeros(max(bodies, 1), wp.mat33d)
         wp.launch(
-            K.pose_vertices_kernel, dim=n,
+            K.pose_start_kernel, dim=max(n, bodies),
+            inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
+                    self.vertex_owner, self.local, self._or(self.body_inv_inertia_body, self._no_inertia), n, bodies],
+            outputs=[x, lever, inv_inertia], device=self.device,
+        )
+        return x, lever, inv_inertia
+
+    def positions(self, particle_q, body_q):
+        """World positions of all collidable vertices (+ the dummy vertex)."""
+        n = self.n_vertices + 1
+        x = self._zeros(n, wp.vec3d)
+        wp.launch(
+            K.pose_positions_kernel, dim=n,
             inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local],
-            outputs=[x, lever], device=self.device,
+            outputs=[x], device=self.device,
         )
-        return x, lever
-
-    def world_inverse_inertia(self, body_q):
-        """World inverse inertia tensors at the poses ``body_q`` (B,) (a dummy when B = 0)."""
-        if body_q is None or body_q.shape[0] == 0:
-            return self._zeros(1, wp.mat33d)
-        out = self._zeros(body_q.shape[0], wp.mat33d)
-        wp.launch(K.body_world_inverse_inertia_kernel, dim=body_q.shape[0],
-                  inputs=[body_q, self.body_inv_inertia_body], outputs=[out], device=self.device)
-        return out
+        return x
 
     def geometry(self, x0, x1, lever, rows, count: int, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
                  separation, separation_rate, touching_relative, max_derivative, nearest_slot: bool = False):
@@ -288,9 +301,7 @@ class ContactReplay:
                       outputs=[rhs], device=self.device)
             solution = self._dense_solve(matrix, rhs)
             normal = self._zeros(c, wp.vec3d)
-            wp.launch(K.normal_impulses_kernel, dim=c, inputs=[cu, solution, normals], outputs=[normal],
-                      device=self.device)
-            return normal, self._apply(normal, pairs_w, weights, sides, masses, vp, vb, True)
+            return normal, self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, normal))
 
         normal, (vp, vb) = normal_pass(vm_p, vm_b)
         if share is not None and self.friction > 0.0:
@@ -302,32 +313,29 @@ class ContactReplay:
                               self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
                               self._or(vb, self.empty_twist), wp.float64(self.friction)],
                       outputs=[friction], device=self.device)
-            vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b, True)
+            vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b)
             normal, (vp, vb) = normal_pass(vp_f, vb_f)
         return vp, vb, normal
 
-    def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, any_impulse: bool):
-        """Velocities after the contact ``impulses`` (fresh arrays; the inputs when none)."""
+    def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, solved=None):
+        """Velocities after the contact ``impulses`` (C,) (fresh arrays;
+        :func:`kernels.contact.contact_velocities_kernel`), or with ``solved`` = (contact
+        unknowns, solution, normals, normal impulses out) after the solved normal impulses, which
+        are written to the last array."""
         p_count = vp.shape[0] if vp is not None else 0
         b_count = vb.shape[0] if vb is not None else 0
-        if not any_impulse:
-            return vp, vb
-        particle_dv = self._zeros(max(p_count, 1), wp.vec3d)
-        body_dv = self._zeros(max(b_count, 1), wp.vec3d)
-        body_dw = self._zeros(max(b_count, 1), wp.vec3d)
-        wp.launch(K.apply_impulses_kernel, dim=len(impulses),
-                  inputs=[impulses, pairs_w, weights, self.vertex_type, self.vertex_owner, *sides, *masses],
-                  outputs=[particle_dv, body_dv, body_dw], device=self.device)
-        out_p, out_b = vp, vb
-        if p_count:
-            out_p = self._zeros(p_count, wp.vec3d)
-            wp.launch(K.add_particle_velocity_kernel, dim=p_count, inputs=[vp, particle_dv], outputs=[out_p],
-                      device=self.device)
-        if b_count:
-            out_b = self._zeros(b_count, wp.spatial_vectord)
-            wp.launch(K.add_body_velocity_kernel, dim=b_count, inputs=[vb, body_dv, body_dw], outputs=[out_b],
-                      device=self.device)
-        return out_p, out_b
+        c = impulses.shape[0] if solved is None else solved[3].shape[0]
+        out_p = self._zeros(p_count, wp.vec3d) if p_count else self.empty_vec
+        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self.empty_twist
+        unknowns, solution, normals, normal = solved if solved is not None else \
+            (self._no_int, self._no_float, self.empty_vec, self.empty_vec)
+        wp.launch(K.contact_velocities_kernel, dim=p_count + b_count + c,
+                  inputs=[p_count, b_count, int(solved is not None), unknowns, solution, normals,
+                          impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
+                          self.vertex_owner, *sides, *masses, self._or(vp, self.empty_vec),
+                          self._or(vb, self.empty_twist)],
+                  outputs=[normal, out_p, out_b], device=self.device)
+        return (out_p if p_count else vp), (out_b if b_count else vb)
 
     def _dense_solve(self, matrix, rhs):
         """``A^-1 b`` with the implicit adjoint recorded on the active tape."""
@@ -407,19 +415,21 @@ class ContactReplay:
         return out_p, out_b
 
     def integrate(self, x0p, x_pred, vm_p, vp, bq0, bq_pred, vm_b, vb, particle_owner, body_owner, toi, h):
-        """Time-of-impact integration of particles and bodies (owner contact rows: device int32
-        arrays, fresh while a tape records; -1: the prediction stays; -2: an impact zone's rigid
-        motion over the whole substep)."""
-        xp = x_pred
-        if x0p is not None and x0p.shape[0]:
-            xp = self._zeros(x0p.shape[0], wp.vec3d)
-            wp.launch(K.time_of_impact_particles_kernel, dim=x0p.shape[0],
-                      inputs=[x0p, x_pred, vm_p, vp, particle_owner, toi, wp.float64(h)],
-                      outputs=[xp], device=self.device)
-        bq = bq_pred
-        if bq0 is not None and bq0.shape[0]:
-            bq = self._zeros(bq0.shape[0], wp.transformd)
-            wp.launch(K.time_of_impact_bodies_kernel, dim=bq0.shape[0],
-                      inputs=[bq0, bq_pred, vm_b, vb, body_owner, toi, wp.float64(h)],
-                      outputs=[bq], device=self.device)
-        return xp, bq
+        """Time-of-impact integration of particles and bodies in one launch
+        (:func:`kernels.contact.time_of_impact_kernel`; owner contact rows: device int32 arrays,
+        fresh while a tape records; -1: the prediction stays; -2: an impact zone's rigid motion
+        over the whole substep). Returns (particle positions, body poses): fresh arrays, or the
+        predictions of a model without particles / bodies."""
+        p_count = x0p.shape[0] if x0p is not None else 0
+        b_count = bq0.shape[0] if bq0 is not None else 0
+        xp = self._zeros(p_count, wp.vec3d) if p_count else None
+        bq = self._zeros(b_count, wp.transformd) if b_count else None
+        if p_count + b_count:
+            wp.launch(K.time_of_impact_kernel, dim=p_count + b_count,
+                      inputs=[p_count, self._or(x0p, self.empty_vec), self._or(x_pred, self.empty_vec),
+                              self._or(vm_p, self.empty_vec), self._or(vp, self.empty_vec),
+                              particle_owner, self._or(bq0, self.empty_pose), self._or(bq_pred, self.empty_pose),
+                              self._or(vm_b, self.empty_twist), self._or(vb, self.empty_twist), body_owner, toi,
+                              wp.float64(h)],
+                      outputs=[self._or(xp, self.empty_vec), self._or(bq, self.empty_pose)], device=self.device)
+        return (xp if p_count else x_pred), (bq if b_count else bq_pred)

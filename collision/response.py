@@ -951,8 +951,7 @@ class ImpulseCollisionHandler:
         vm_p = state_pred.particle_qd if P else None
         vm_b = state_pred.body_qd if B else None
         vm = (vm_p if P else R.empty_vec, vm_b if B else R.empty_twist)
-        X0, L0 = R.pose(xq0, bq0_w)
-        inv_I = R.world_inverse_inertia(bq0_w)
+        X0, L0, inv_I = R.pose_start(xq0, bq0_w)
         delta = self.separation
         self._sep_speed = delta / h
         mu = float(m.friction)
@@ -1013,6 +1012,8 @@ class ImpulseCollisionHandler:
             with paused_tape():
                 dec = self._velocities_of(*current())
                 self._solve(dec, L0, inv_I)
+            # the set's rows as the taped solves read them (one copy while a tape records)
+            vertices, kinds = R.frozen(cs.vertices, C), R.frozen(cs.kind, C)
             mobile = self._staging.empty("mobile_rows", C, wp.int32)
             active = take(C, wp.int32, zero=False, grad=False)
             launch("r_initial_active", initial_active_kernel, C, [
@@ -1025,8 +1026,7 @@ class ImpulseCollisionHandler:
                 # the first trial is recorded (usually it is the final one); repair trials stay off
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    vp_d, vb_d, normal = R.solve(st["dev"], cs.vertices, cs.kind, C, active, L0, inv_I, vm_p, vm_b,
-                                                 share)
+                    vp_d, vb_d, normal = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
                 if iteration == 0:
                     recorded = (vp_d, vb_d, normal)
                 repaired = take(C, wp.int32, zero=False, grad=False)
@@ -1044,7 +1044,7 @@ class ImpulseCollisionHandler:
             if tape is not None and active is not taped and self._flags_differ(taped, active, C):
                 # the replay of the final active set, recorded
                 share = self._friction_share(active) if mu > 0 else None
-                vp_d, vb_d, normal = R.solve(st["dev"], cs.vertices, cs.kind, C, active, L0, inv_I, vm_p, vm_b, share)
+                vp_d, vb_d, normal = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
             elif tape is not None:
                 # the repairs came back to the first trial's set: its recorded solve (the same
                 # values) is the one the tape continues from, not the last, unrecorded trial
@@ -1072,7 +1072,7 @@ class ImpulseCollisionHandler:
         failsafe = False
         for iteration in itertools.count():
             X1p, BQ1, tp, tb = plan()
-            X1, _ = R.pose(X1p if P else None, BQ1 if B else None)
+            X1 = R.positions(X1p if P else None, BQ1 if B else None)
             with paused_tape():  # decisions: off the tape
                 count = self._ccd_hits(x0, host(X1), X1, 1)
             if not count:

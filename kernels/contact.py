@@ -12,6 +12,7 @@ import warp as wp
 from kernels.ccd import box_farther_than, farther_than, filter_rounding, pair_vertex_indices
 from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, max_abs_vec3, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest, segment_segment_offset
+from kernels.integrate import time_of_impact_position
 from kernels.point_triangle import point_triangle_closest, point_triangle_offset
 from kernels.roots import cubic_roots
 
@@ -343,6 +344,65 @@ def pose_vertices_kernel(
         lever[v] = zero
 
 
+@wp.kernel
+def pose_start_kernel(
+    particle_q: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    vertex_count: int,
+    body_count: int,
+    x: wp.array(dtype=wp.vec3d),
+    lever: wp.array(dtype=wp.vec3d),
+    inv_inertia_w: wp.array(dtype=wp.mat33d),
+):
+    """:func:`pose_vertices_kernel` and, in the first ``body_count`` threads, the bodies' world
+    inverse inertia tensors (:func:`world_inverse_inertia`) in one launch over
+    ``max(vertex_count, body_count)`` threads: what the replayed response needs at the start of
+    a substep."""
+    v = wp.tid()
+    if v < body_count:
+        inv_inertia_w[v] = world_inverse_inertia(body_q[v], body_inv_inertia[v])
+    if v >= vertex_count:
+        return
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if kind == VERTEX_PARTICLE:
+        x[v] = particle_q[o]
+        lever[v] = zero
+    elif kind == VERTEX_BODY:
+        r = body_lever(body_q[o], local[v])
+        x[v] = wp.transform_get_translation(body_q[o]) + r
+        lever[v] = r
+    else:
+        x[v] = local[v]
+        lever[v] = zero
+
+
+@wp.kernel
+def pose_positions_kernel(
+    particle_q: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+):
+    """:func:`pose_vertices_kernel`'s positions alone."""
+    v = wp.tid()
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        x[v] = particle_q[o]
+    elif kind == VERTEX_BODY:
+        x[v] = body_point(body_q[o], local[v])
+    else:
+        x[v] = local[v]
+
+
 @wp.func
 def body_lever(X: wp.transformd, local: wp.vec3d) -> wp.vec3d:
     """The lever arm (world offset from the centre of mass) of a body-frame point ``local`` of a
@@ -659,17 +719,6 @@ def merge_contacts_kernel(
         targets[c] = new_targets[k]
 
 
-@wp.kernel
-def body_world_inverse_inertia_kernel(
-    body_q: wp.array(dtype=wp.transformd),
-    inv_inertia: wp.array(dtype=wp.mat33d),
-    out: wp.array(dtype=wp.mat33d),
-):
-    """``R I^-1 R^T`` of body ``tid`` at pose ``body_q``."""
-    b = wp.tid()
-    out[b] = world_inverse_inertia(body_q[b], inv_inertia[b])
-
-
 @wp.func
 def world_inverse_inertia(X: wp.transformd, inv_inertia: wp.mat33d) -> wp.mat33d:
     """``R I^-1 R^T`` of a body at pose ``X`` (rotation R) with body-frame inverse inertia
@@ -936,23 +985,6 @@ def solve_adjoint_kernel(
 
 
 @wp.kernel
-def normal_impulses_kernel(
-    contact_unknown: wp.array(dtype=wp.int32),
-    solution: wp.array(dtype=wp.float64),
-    normals: wp.array(dtype=wp.vec3d),
-    impulses: wp.array(dtype=wp.vec3d),
-):
-    """Impulse vector of contact ``tid``: its solved normal impulse times the normal (zero for
-    inactive contacts, ``contact_unknown < 0``)."""
-    c = wp.tid()
-    u = contact_unknown[c]
-    if u >= 0:
-        impulses[c] = solution[u] * normals[c]
-    else:
-        impulses[c] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-
-
-@wp.kernel
 def friction_impulses_kernel(
     normal_impulses: wp.array(dtype=wp.vec3d),
     share: wp.array(dtype=wp.float64),
@@ -1030,7 +1062,13 @@ def friction_impulses_kernel(
 
 
 @wp.kernel
-def apply_impulses_kernel(
+def contact_velocities_kernel(
+    particle_count: int,
+    body_count: int,
+    from_solution: int,
+    contact_unknown: wp.array(dtype=wp.int32),
+    solution: wp.array(dtype=wp.float64),
+    normals: wp.array(dtype=wp.vec3d),
     impulses: wp.array(dtype=wp.vec3d),
     pairs: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -1043,52 +1081,52 @@ def apply_impulses_kernel(
     particle_inv_mass: wp.array(dtype=wp.float64),
     body_inv_mass: wp.array(dtype=wp.float64),
     body_inv_inertia: wp.array(dtype=wp.mat33d),
-    particle_dv: wp.array(dtype=wp.vec3d),
-    body_dv: wp.array(dtype=wp.vec3d),
-    body_dw: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    normal_impulses: wp.array(dtype=wp.vec3d),
+    particle_qd_out: wp.array(dtype=wp.vec3d),
+    body_qd_out: wp.array(dtype=wp.spatial_vectord),
 ):
-    """Impulse of contact ``tid`` accumulated into the velocity changes of its particles
-    (``w_k j / m``) and bodies (``W j / m``, ``I^-1 (rho x j)``)."""
-    c = wp.tid()
-    j = impulses[c]
+    """Velocities after contact impulses, in one launch over ``P + B + C`` threads into the
+    zeroed ``particle_qd_out`` (P,) and ``body_qd_out`` (B,) (every term is an atomic add, so no
+    thread waits for another): the first ``P`` / ``B`` threads add the velocities before, each
+    contact thread its impulse's changes, ``w_k j / m`` to its particles and ``W j / m``,
+    ``I^-1 (rho x j)`` to its sides' bodies. The impulse is ``impulses[c]``, or with
+    ``from_solution`` the solved normal impulse ``solution[contact_unknown[c]] normals[c]``
+    (zero for an inactive contact, ``contact_unknown < 0``), then also written to
+    ``normal_impulses[c]``."""
+    i = wp.tid()
+    if i < particle_count:
+        wp.atomic_add(particle_qd_out, i, particle_qd[i])
+        return
+    if i < particle_count + body_count:
+        wp.atomic_add(body_qd_out, i - particle_count, body_qd[i - particle_count])
+        return
+    c = i - particle_count - body_count
+    j = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if from_solution != 0:
+        u = contact_unknown[c]
+        if u >= 0:
+            j = solution[u] * normals[c]
+        normal_impulses[c] = j
+    else:
+        j = impulses[c]
     q = pairs[c]
     w = weights[c]
     for k in range(4):
         if vertex_type[q[k]] == VERTEX_PARTICLE:
             o = vertex_owner[q[k]]
-            wp.atomic_add(particle_dv, o, (w[k] * particle_inv_mass[o]) * j)
+            wp.atomic_add(particle_qd_out, o, (w[k] * particle_inv_mass[o]) * j)
     b = side_body[c]
     ws = side_weight[c]
-    if b[0] >= 0:
-        wp.atomic_add(body_dv, b[0], (ws[0] * body_inv_mass[b[0]]) * j)
-        wp.atomic_add(body_dw, b[0], body_inv_inertia[b[0]] * wp.cross(rho_a[c], j))
-    if b[1] >= 0:
-        wp.atomic_add(body_dv, b[1], (ws[1] * body_inv_mass[b[1]]) * j)
-        wp.atomic_add(body_dw, b[1], body_inv_inertia[b[1]] * wp.cross(rho_b[c], j))
-
-
-@wp.kernel
-def add_particle_velocity_kernel(
-    particle_qd: wp.array(dtype=wp.vec3d),
-    dv: wp.array(dtype=wp.vec3d),
-    out: wp.array(dtype=wp.vec3d),
-):
-    i = wp.tid()
-    out[i] = particle_qd[i] + dv[i]
-
-
-@wp.kernel
-def add_body_velocity_kernel(
-    body_qd: wp.array(dtype=wp.spatial_vectord),
-    dv: wp.array(dtype=wp.vec3d),
-    dw: wp.array(dtype=wp.vec3d),
-    out: wp.array(dtype=wp.spatial_vectord),
-):
-    b = wp.tid()
-    t = body_qd[b]
-    w = wp.spatial_top(t) + dw[b]
-    v = wp.spatial_bottom(t) + dv[b]
-    out[b] = wp.spatial_vectord(w[0], w[1], w[2], v[0], v[1], v[2])
+    for side in range(2):
+        if b[side] >= 0:
+            rho = rho_a[c]
+            if side == 1:
+                rho = rho_b[c]
+            dv = (ws[side] * body_inv_mass[b[side]]) * j
+            dw = body_inv_inertia[b[side]] * wp.cross(rho, j)
+            wp.atomic_add(body_qd_out, b[side], wp.spatial_vectord(dw[0], dw[1], dw[2], dv[0], dv[1], dv[2]))
 
 
 @wp.func
@@ -1107,13 +1145,6 @@ def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
 
 
 @wp.func
-def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64, h: wp.float64):
-    """``x0 + t* v- + (h - t*) v+``: the end of a substep ``h`` [s] whose velocity switches from
-    ``v-`` to ``v+`` at the time of impact ``ts`` [s]."""
-    return x0 + ts * v_minus + (h - ts) * v_plus
-
-
-@wp.func
 def time_of_impact_pose(X: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord, ts: wp.float64,
                         h: wp.float64):
     """The same for a body pose: the centre of mass as a particle, the orientation turned by
@@ -1125,51 +1156,46 @@ def time_of_impact_pose(X: wp.transformd, v_minus: wp.spatial_vectord, v_plus: w
 
 
 @wp.kernel
-def time_of_impact_particles_kernel(
+def time_of_impact_kernel(
+    particle_count: int,
     x0: wp.array(dtype=wp.vec3d),
     x_pred: wp.array(dtype=wp.vec3d),
-    v_minus: wp.array(dtype=wp.vec3d),
-    v_plus: wp.array(dtype=wp.vec3d),
-    owner_contact: wp.array(dtype=wp.int32),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_contact: wp.array(dtype=wp.int32),
+    q0: wp.array(dtype=wp.transformd),
+    q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_contact: wp.array(dtype=wp.int32),
     toi: wp.array(dtype=wp.float64),
     h: wp.float64,
     x1: wp.array(dtype=wp.vec3d),
-):
-    """Time-of-impact integration (:func:`time_of_impact_position`) of particle ``tid`` with
-    the ``t*`` of its earliest contact ``owner_contact`` (-1: no contact, the prediction stays;
-    -2: impact zone, ``x0 + h v+``)."""
-    i = wp.tid()
-    k = owner_contact[i]
-    if k == -1:
-        x1[i] = x_pred[i]
-    elif k == -2:
-        x1[i] = x0[i] + h * v_plus[i]
-    else:
-        x1[i] = time_of_impact_position(x0[i], v_minus[i], v_plus[i], toi[k], h)
-
-
-@wp.kernel
-def time_of_impact_bodies_kernel(
-    q0: wp.array(dtype=wp.transformd),
-    q_pred: wp.array(dtype=wp.transformd),
-    v_minus: wp.array(dtype=wp.spatial_vectord),
-    v_plus: wp.array(dtype=wp.spatial_vectord),
-    owner_contact: wp.array(dtype=wp.int32),
-    toi: wp.array(dtype=wp.float64),
-    h: wp.float64,
     q1: wp.array(dtype=wp.transformd),
 ):
-    """The same for body ``tid`` (:func:`time_of_impact_pose`; an impact zone's body turns from
-    ``t* = 0``)."""
-    b = wp.tid()
-    k = owner_contact[b]
-    if k == -1:
+    """Time-of-impact integration of particle ``tid`` (first ``particle_count`` threads;
+    :func:`time_of_impact_position`) and of body ``tid - particle_count``
+    (:func:`time_of_impact_pose`) with the ``t*`` of its earliest contact row (-1: no contact,
+    the prediction stays; -2: impact zone, its rigid motion from ``t* = 0``)."""
+    i = wp.tid()
+    if i < particle_count:
+        k = particle_contact[i]
+        if k == -1:
+            x1[i] = x_pred[i]
+        elif k == -2:
+            x1[i] = x0[i] + h * particle_v_plus[i]
+        else:
+            x1[i] = time_of_impact_position(x0[i], particle_v_minus[i], particle_v_plus[i], toi[k], h)
+        return
+    b = i - particle_count
+    kb = body_contact[b]
+    if kb == -1:
         q1[b] = q_pred[b]
         return
     ts = wp.float64(0.0)
-    if k >= 0:
-        ts = toi[k]
-    q1[b] = time_of_impact_pose(q0[b], v_minus[b], v_plus[b], ts, h)
+    if kb >= 0:
+        ts = toi[kb]
+    q1[b] = time_of_impact_pose(q0[b], body_v_minus[b], body_v_plus[b], ts, h)
 
 
 @wp.func

@@ -122,6 +122,15 @@ def integrate_bodies(
     body_qd_out[b] = wp.spatial_vectord(w1[0], w1[1], w1[2], v1[0], v1[1], v1[2])
 
 
+@wp.func
+def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64, h: wp.float64):
+    """``x0 + t* v- + (h - t*) v+``: the end of a substep ``h`` [s] whose velocity switches from
+    ``v-`` to ``v+`` at the time of impact ``ts`` [s] (the one time-of-impact integration: the
+    particles' plane contacts here, and the collision response's particles and bodies,
+    :mod:`kernels.contact`)."""
+    return x0 + ts * v_minus + (h - ts) * v_plus
+
+
 @wp.kernel
 def find_plane_contacts(
     x0: wp.array(dtype=wp.vec3d),
@@ -216,7 +225,7 @@ def respond_plane_contacts(
         vt_plus = vt * wp.max(f64(0.0), f64(1.0) - friction * jn / vt_len)
     v_plus = vt_plus + n * vn_plus
 
-    x_out[i] = xi + vi * toi + v_plus * (dt - toi)
+    x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt)
     v_out[i] = v_plus
 
 

@@ -127,3 +127,21 @@ def test_owner_times_and_rows_prefer_differentiated_then_later_rows():
         # body 0: rows 1 (0.3, untimed) and 2 (0.1, timed) -> time 0.1, row 2
         np.testing.assert_array_equal(tb.numpy(), [0.1])
         np.testing.assert_array_equal(rb.numpy(), [2])
+
+
+def test_radix_sort_gives_the_heap_sorts_order():
+    """Off the CPU a large detection pass is ordered by Warp's radix sort
+    (:data:`collision.response.DEVICE_SORT_MIN`): for distinct keys it must give the order of
+    the heap sort (checked here on the CPU, where both run), so the contacts are the same
+    whichever sorted them."""
+    rng = np.random.default_rng(1)
+    for n in (5, 2049, 5000):
+        keys = rng.choice(2 ** 62, size=n, replace=False).astype(np.int64)
+        heap_k = wp.array(np.concatenate([keys, keys]), dtype=wp.int64, device=DEV)
+        heap_v = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=DEV)
+        radix_k = wp.array(np.concatenate([keys, keys]), dtype=wp.int64, device=DEV)
+        radix_v = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=DEV)
+        wp.launch(sort_keys_kernel, 1, [n, heap_k, heap_v], device=DEV)
+        wp.utils.radix_sort_pairs(radix_k, radix_v, n)
+        np.testing.assert_array_equal(radix_k.numpy()[:n], heap_k.numpy()[:n])
+        np.testing.assert_array_equal(radix_v.numpy()[:n], heap_v.numpy()[:n])

@@ -528,7 +528,7 @@ def test_tape_holds_the_replay_only_no_decisions_or_iterative_solves():
             s = s_next
     kernels = {launch[0].key for launch in tape.launches if not callable(launch)}
     assert {"contact_geometry_kernel", "delassus_kernel", "contact_rhs_kernel", "friction_impulses_kernel",
-            "time_of_impact_bodies_kernel"} <= kernels
+            "time_of_impact_kernel"} <= kernels
     # the solve's implicit adjoint (a transposed solve), recorded as a function
     assert any(callable(launch) and "_dense_solve" in getattr(launch, "__qualname__", "") for launch in tape.launches)
     for decision in ("ccd_kernel", "pair_ccd_kernel", "pair_proximity_kernel", "solve_contacts_kernel",
