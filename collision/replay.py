@@ -148,12 +148,6 @@ class ContactReplay:
             a = np.zeros((1,) + a.shape[1:], dtype=a.dtype)
         return upload(self.take(a.shape[0], dtype, zero=False, grad=False), a.astype(np.int32))
 
-    def _floats(self, a, dtype=wp.float64):
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        if a.shape[0] == 0:
-            a = np.zeros((1,) + a.shape[1:])
-        return upload(self.take(a.shape[0], dtype, zero=False, grad=False), a)
-
     @staticmethod
     def _or(a, empty):
         return a if a is not None and a.shape[0] else empty
@@ -329,8 +323,8 @@ class ContactReplay:
         out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self.empty_twist
         unknowns, solution, normals, normal = solved if solved is not None else \
             (self._no_int, self._no_float, self.empty_vec, self.empty_vec)
-        wp.launch(K.contact_velocities_kernel, dim=p_count + b_count + c,
-                  inputs=[p_count, b_count, int(solved is not None), unknowns, solution, normals,
+        wp.launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
+                  inputs=[c, p_count, int(solved is not None), unknowns, solution, normals,
                           impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
                           self.vertex_owner, *sides, *masses, self._or(vp, self.empty_vec),
                           self._or(vb, self.empty_twist)],

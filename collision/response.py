@@ -137,7 +137,7 @@ afresh, so the contacts are the same as with a query per substep."""
 CCD_REACH_SLACK = 0.5
 """How much farther than predicted [separations] a vertex may end from its start before the
 CCD rounds test every candidate instead of those that the proximity pass kept for them
-(:meth:`ImpulseCollisionHandler._proximity_rows`). Resting contact's rounds change the
+(:meth:`ImpulseCollisionHandler._proximity_hits`). Resting contact's rounds change the
 predicted motion by about ``SEPARATION_RATE`` separations; measured over 100 steps, 0.5 kept
 the short list in 96% of cloth_drop's CCD rounds (154 pairs instead of ~2000), 0.25 in 89%
 (55 pairs), 1.0 in 98% (343 pairs)."""
@@ -455,8 +455,8 @@ class ImpulseCollisionHandler:
         self._plane_d0_w = wp.zeros(rows, dtype=wp.float64, device=dev)
         self._plane_pairs_w = wp.zeros(rows, dtype=wp.vec2i, device=dev)
         self._plane_time_w = wp.zeros(rows, dtype=wp.float64, device=dev)
-        self._plane_counter, self._kept_counter, self._approach_counter = (wp.zeros(1, dtype=wp.int32, device=dev)
-                                                                           for _ in range(3))
+        self._plane_counter, self._kept_counter, self._approach_counter, self._repeated_counter = (
+            wp.zeros(1, dtype=wp.int32, device=dev) for _ in range(4))
         P, B = max(self.n_particles, 1), max(self.n_bodies, 1)
         self._particle_time_w = wp.zeros(P, dtype=wp.float64, device=dev)
         self._body_time_w = wp.zeros(B, dtype=wp.float64, device=dev)
@@ -662,7 +662,7 @@ class ImpulseCollisionHandler:
             self._solve(vel, lever0_w, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
-        if cs.count == 0 and not failsafe:
+        if planned is None:  # nothing changed the prediction (no contact, no zone grew)
             return None
         x1p_w, bq1_w, _, x1_w, _ = planned
         self._note_contacts(_CallContacts(cs, x0_w, x1_w, h, self.vertex_type))
@@ -710,10 +710,14 @@ class ImpulseCollisionHandler:
         else:
             wp.utils.radix_sort_pairs(H.keys, H.order, total)
         if kept:
+            zero(self._repeated_counter)
             launch("gather", gather_hits_kernel, kept, [
-                H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
+                H.keys, H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
                 self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
-                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row])
+                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
+            if host(self._repeated_counter)[0]:
+                raise RuntimeError("collision detection returned a primitive pair twice in one pass "
+                                   "(the broad phase's candidates must be distinct pairs)")
         H.count = kept
         return kept
 
@@ -745,7 +749,7 @@ class ImpulseCollisionHandler:
         self._launches.launch("add", add_contacts_kernel, 1, [
             H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
             cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
-            cs.timed, cs.normal_impulse, cs.friction_impulse, H.source_row, cs.counter, *merge])
+            cs.timed, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
         cs.count = int(host(cs.counter)[0])
 
     def _plane_hits(self, x_w, delta: float | None) -> int:
@@ -845,19 +849,13 @@ class ImpulseCollisionHandler:
         updates the velocities ``vel`` (device buffers) and the set's accumulated impulses in
         place. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row): the vertices'
         lever arms and the bodies' world inverse inertia tensors at the start pose."""
-        cs = self._contacts
-        self._launch_solve(cs.count, cs.vertices, cs.kind, cs.weights, cs.normals, cs.targets, vel, lever,
-                           inv_inertia_w, cs.normal_impulse, cs.friction_impulse)
-
-    def _launch_solve(self, count, vertices, kind, weights, normals, targets, vel, lever, inv_inertia_w, jn, jt):
-        staging = self._staging
+        cs, staging, R, count = self._contacts, self._staging, self._replay, self._contacts.count
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
         sweeps = staging.empty("sweeps", 1, wp.int32)
-        R = self._replay
         # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
         # never writes the shared stand-in passed for their velocities
         self._launches.launch("solve", solve_contacts_kernel, 1, [
-            count, vertices, weights, normals, targets, kind, R.vertex_type, R.vertex_owner,
+            count, cs.vertices, cs.weights, cs.normals, cs.targets, cs.kind, R.vertex_type, R.vertex_owner,
             lever, 0,  # indexed by vertex
             self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
@@ -865,7 +863,7 @@ class ImpulseCollisionHandler:
             staging.empty("contact_mass", count, wp.float64), staging.empty("contact_particles", count, wp.vec4i),
             staging.empty("contact_bodies", count, wp.vec2i), staging.empty("contact_body_weight", count, wp.vec2d),
             staging.empty("contact_lever", 2 * count, wp.vec3d),
-            vel[0], vel[1], jn, jt, sweeps,
+            vel[0], vel[1], cs.normal_impulse, cs.friction_impulse, sweeps,
         ])
         self.last_sweeps = int(host(sweeps)[0])
 
@@ -918,9 +916,9 @@ class ImpulseCollisionHandler:
             vp, vb = R.zone_velocities(vel[0] if P else None, vel[1] if B else None, particle_zone, body_zone,
                                        n_zones, state_in.particle_q if P else None, state_in.body_q if B else None,
                                        m.body_mass if B else None, m.body_inertia if B else None)
-        if P:
+        if P and vp is not vel[0]:  # the input itself when no particle is in a zone
             copy_rows(vel[0], vp, P)
-        if B:
+        if B and vb is not vel[1]:
             copy_rows(vel[1], vb, B)
         return self._zone_flags(zones)
 
@@ -968,7 +966,11 @@ class ImpulseCollisionHandler:
 
         def owners():
             """Each owner's earliest contact time and its row (decisions: fresh arrays while a
-            tape records, which the taped geometry and integration read)."""
+            tape records, which the taped geometry and integration read). A member of an impact
+            zone has time 0 and row -2: it moves with the zone's rigid velocity over the whole
+            substep, so later hits see that velocity at any ``t*`` (as in the Gauss-Seidel
+            response; before the device decisions the replay kept its earliest contact time
+            there)."""
             take = R.take
             tp, tb = take(max(P, 1), wp.float64, zero=False, grad=False), take(max(B, 1), wp.float64, zero=False, grad=False)
             po, bo = take(max(P, 1), wp.int32, zero=False, grad=False), take(max(B, 1), wp.int32, zero=False, grad=False)

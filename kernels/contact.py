@@ -315,6 +315,48 @@ TIME_DETECTED = wp.constant(4)  # a time the narrow phase found off the cubic (n
 TIME_PLANE = wp.constant(6)  # vertex-plane crossing of the linear path
 
 
+@wp.func
+def vertex_pose(
+    v: int,
+    particle_q: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+):
+    """(world position, lever arm from its body's centre of mass: zero for particles and static
+    vertices) of collidable vertex ``v``; ``local`` holds body-frame positions of rigid vertices
+    and world positions of static ones."""
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if kind == VERTEX_PARTICLE:
+        return particle_q[o], zero
+    if kind == VERTEX_BODY:
+        r = body_lever(body_q[o], local[v])
+        return wp.transform_get_translation(body_q[o]) + r, r
+    return local[v], zero
+
+
+@wp.func
+def vertex_position(
+    v: int,
+    particle_q: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+) -> wp.vec3d:
+    """World position of collidable vertex ``v`` (:func:`vertex_pose`'s without the lever arm)."""
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        return particle_q[o]
+    if kind == VERTEX_BODY:
+        return body_point(body_q[o], local[v])
+    return local[v]
+
+
 @wp.kernel
 def pose_vertices_kernel(
     particle_q: wp.array(dtype=wp.vec3d),
@@ -329,19 +371,9 @@ def pose_vertices_kernel(
     of mass (zero for particles and static vertices). ``local`` holds body-frame positions of
     rigid vertices and world positions of static ones."""
     v = wp.tid()
-    kind = vertex_type[v]
-    o = vertex_owner[v]
-    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    if kind == VERTEX_PARTICLE:
-        x[v] = particle_q[o]
-        lever[v] = zero
-    elif kind == VERTEX_BODY:
-        r = body_lever(body_q[o], local[v])
-        x[v] = wp.transform_get_translation(body_q[o]) + r
-        lever[v] = r
-    else:
-        x[v] = local[v]
-        lever[v] = zero
+    p, r = vertex_pose(v, particle_q, body_q, vertex_type, vertex_owner, local)
+    x[v] = p
+    lever[v] = r
 
 
 @wp.kernel
@@ -367,19 +399,9 @@ def pose_start_kernel(
         inv_inertia_w[v] = world_inverse_inertia(body_q[v], body_inv_inertia[v])
     if v >= vertex_count:
         return
-    kind = vertex_type[v]
-    o = vertex_owner[v]
-    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    if kind == VERTEX_PARTICLE:
-        x[v] = particle_q[o]
-        lever[v] = zero
-    elif kind == VERTEX_BODY:
-        r = body_lever(body_q[o], local[v])
-        x[v] = wp.transform_get_translation(body_q[o]) + r
-        lever[v] = r
-    else:
-        x[v] = local[v]
-        lever[v] = zero
+    p, r = vertex_pose(v, particle_q, body_q, vertex_type, vertex_owner, local)
+    x[v] = p
+    lever[v] = r
 
 
 @wp.kernel
@@ -393,14 +415,7 @@ def pose_positions_kernel(
 ):
     """:func:`pose_vertices_kernel`'s positions alone."""
     v = wp.tid()
-    kind = vertex_type[v]
-    o = vertex_owner[v]
-    if kind == VERTEX_PARTICLE:
-        x[v] = particle_q[o]
-    elif kind == VERTEX_BODY:
-        x[v] = body_point(body_q[o], local[v])
-    else:
-        x[v] = local[v]
+    x[v] = vertex_position(v, particle_q, body_q, vertex_type, vertex_owner, local)
 
 
 @wp.func
@@ -437,29 +452,17 @@ def pose_substep_kernel(
     """One launch for what a substep's collision handling needs first: the vertices at the start
     (``x0``, ``lever0``, as :func:`pose_vertices_kernel` poses ``particle_q0``, ``body_q0``), at
     the predicted end (``x1``, of ``particle_q1``, ``body_q1``) and, in the first threads, the
-    bodies' world inverse inertia at the start (:func:`body_world_inverse_inertia_kernel`).
+    bodies' world inverse inertia at the start (:func:`world_inverse_inertia`).
     Launched over ``max(vertex_count, body_count)`` threads."""
     v = wp.tid()
     if v < body_count:
         inv_inertia_w[v] = world_inverse_inertia(body_q0[v], body_inv_inertia[v])
     if v >= vertex_count:
         return
-    kind = vertex_type[v]
-    o = vertex_owner[v]
-    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    if kind == VERTEX_PARTICLE:
-        x0[v] = particle_q0[o]
-        lever0[v] = zero
-        x1[v] = particle_q1[o]
-    elif kind == VERTEX_BODY:
-        r = body_lever(body_q0[o], local[v])
-        x0[v] = wp.transform_get_translation(body_q0[o]) + r
-        lever0[v] = r
-        x1[v] = body_point(body_q1[o], local[v])
-    else:
-        x0[v] = local[v]
-        lever0[v] = zero
-        x1[v] = local[v]
+    p, r = vertex_pose(v, particle_q0, body_q0, vertex_type, vertex_owner, local)
+    x0[v] = p
+    lever0[v] = r
+    x1[v] = vertex_position(v, particle_q1, body_q1, vertex_type, vertex_owner, local)
 
 
 @wp.func
@@ -512,18 +515,6 @@ def pair_weights(kind: int, y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec
         st = segment_segment_closest(y0, y1, y2, y3)
         return wp.vec4d(one - st[0], st[0], -(one - st[1]), -st[1])
     return wp.vec4d(one, zero, zero, zero)
-
-
-@wp.kernel
-def pair_weights_kernel(
-    kind: wp.array(dtype=wp.int32),
-    y: wp.array(dtype=wp.vec3d),
-    weights: wp.array(dtype=wp.vec4d),
-):
-    """:func:`pair_weights` of contact ``i`` (kind 0 vertex-face, 1 edge-edge, 2 vertex-plane)
-    at the four positions ``y[4 i : 4 i + 4]``."""
-    i = wp.tid()
-    weights[i] = pair_weights(kind[i], y[4 * i], y[4 * i + 1], y[4 * i + 2], y[4 * i + 3])
 
 
 @wp.func
@@ -1063,8 +1054,8 @@ def friction_impulses_kernel(
 
 @wp.kernel
 def contact_velocities_kernel(
+    contact_count: int,
     particle_count: int,
-    body_count: int,
     from_solution: int,
     contact_unknown: wp.array(dtype=wp.int32),
     solution: wp.array(dtype=wp.float64),
@@ -1087,22 +1078,24 @@ def contact_velocities_kernel(
     particle_qd_out: wp.array(dtype=wp.vec3d),
     body_qd_out: wp.array(dtype=wp.spatial_vectord),
 ):
-    """Velocities after contact impulses, in one launch over ``P + B + C`` threads into the
+    """Velocities after contact impulses, in one launch over ``C + P + B`` threads into the
     zeroed ``particle_qd_out`` (P,) and ``body_qd_out`` (B,) (every term is an atomic add, so no
-    thread waits for another): the first ``P`` / ``B`` threads add the velocities before, each
-    contact thread its impulse's changes, ``w_k j / m`` to its particles and ``W j / m``,
-    ``I^-1 (rho x j)`` to its sides' bodies. The impulse is ``impulses[c]``, or with
-    ``from_solution`` the solved normal impulse ``solution[contact_unknown[c]] normals[c]``
-    (zero for an inactive contact, ``contact_unknown < 0``), then also written to
+    thread waits for another): the first ``C`` (``contact_count``) threads add their contact's
+    changes, ``w_k j / m`` to its particles and ``W j / m``, ``I^-1 (rho x j)`` to its sides'
+    bodies, the next ``P`` / ``B`` the velocities before (on the CPU, where threads run in
+    order, the changes are summed first and the result is ``v + sum dv``). The impulse is
+    ``impulses[c]``, or with ``from_solution`` the solved normal impulse
+    ``solution[contact_unknown[c]] normals[c]`` (zero for an inactive contact,
+    ``contact_unknown < 0``), then also written to
     ``normal_impulses[c]``."""
     i = wp.tid()
-    if i < particle_count:
-        wp.atomic_add(particle_qd_out, i, particle_qd[i])
+    if i >= contact_count:
+        if i < contact_count + particle_count:
+            wp.atomic_add(particle_qd_out, i - contact_count, particle_qd[i - contact_count])
+        else:
+            wp.atomic_add(body_qd_out, i - contact_count - particle_count, body_qd[i - contact_count - particle_count])
         return
-    if i < particle_count + body_count:
-        wp.atomic_add(body_qd_out, i - particle_count, body_qd[i - particle_count])
-        return
-    c = i - particle_count - body_count
+    c = i
     j = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     if from_solution != 0:
         u = contact_unknown[c]

@@ -114,6 +114,7 @@ def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.arra
 
 @wp.kernel
 def gather_hits_kernel(
+    keys: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
     mesh_count: int,
     mesh_kind: wp.array(dtype=wp.int32),
@@ -132,6 +133,7 @@ def gather_hits_kernel(
     source: wp.array(dtype=wp.int32),
     plane: wp.array(dtype=wp.int32),
     row: wp.array(dtype=wp.int32),
+    repeated: wp.array(dtype=wp.int32),
 ):
     """Hit ``tid`` in sorted order (``order``: :func:`sort_keys_kernel`'s values) from the narrow
     phase's buffers or the vertex-plane ones: its kind, pair, vertex indices (vertex-plane: the
@@ -142,10 +144,15 @@ def gather_hits_kernel(
     ``TIME_START``); 1 a root's slot (1-3) for the narrow phase's hits at a root of the cubic,
     ``TIME_PLANE`` for plane crossings (the replay recomputes and differentiates ``t*`` for
     those) and ``TIME_DETECTED`` for the other hits; 2 every hit at its detected time
-    (``TIME_DETECTED``: the Gauss-Seidel response)."""
+    (``TIME_DETECTED``: the Gauss-Seidel response). ``repeated[0]`` counts the hits whose key
+    equals the previous one's (a pair twice in one pass: the contact set's growth and matching
+    assume distinct pairs, so the caller refuses it)."""
     i = wp.tid()
     j = int(order[i])
     row[i] = -1
+    if i > 0:
+        if keys[i] == keys[i - 1]:
+            wp.atomic_add(repeated, 0, 1)
     if j < mesh_count:
         kind[i] = mesh_kind[j]
         pair[i] = mesh_pairs[j]
@@ -307,7 +314,7 @@ def approach_kernel(
     largest = zero
     for k in range(4):
         vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_minus, body_qd_minus)
-        if ts >= vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time):
+        if not (ts < vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time)):
             vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd, body_qd)
         vrel = vrel + w[k] * vk
         vpath = vpath + w[k] * ((x1[q[k]] - x0[q[k]]) / h)
@@ -357,7 +364,6 @@ def add_contacts_kernel(
     contact_timed: wp.array(dtype=wp.int32),
     normal_impulse: wp.array(dtype=wp.float64),
     friction_impulse: wp.array(dtype=wp.vec3d),
-    source_row: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
     merge_hit: wp.array(dtype=wp.int32),
     keep_toi: wp.array(dtype=wp.int32),
@@ -368,8 +374,8 @@ def add_contacts_kernel(
     pairs are appended in the hits' order on every device. A hit whose pair is in the set
     (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
     the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
-    larger target; a new pair is appended with zero accumulated impulses. ``source_row[h]``: the
-    set's row that hit ``h`` wrote (-1: none). ``count[0]``: the rows after the call.
+    larger target; a new pair is appended with zero accumulated impulses. ``count[0]``: the rows
+    after the call.
 
     With ``record_merge`` the decisions the taped replay repeats
     (:func:`kernels.contact.merge_contacts_kernel`) are written per row of the grown set:
@@ -383,7 +389,6 @@ def add_contacts_kernel(
             keep_toi[r] = 0
             keep_target[r] = 0
     for h in range(hit_count):
-        source_row[h] = -1
         if all_new == 0 and approaching[h] == 0:
             continue
         r = int(-1)
@@ -424,7 +429,6 @@ def add_contacts_kernel(
                 merge_hit[r] = wp.int32(h)
                 keep_toi[r] = 0
                 keep_target[r] = 0
-        source_row[h] = wp.int32(r)
     count[0] = wp.int32(n)
 
 
@@ -465,7 +469,8 @@ def owner_times_kernel(
 ):
     """Earliest contact time [s] per particle (a vertex with a nonzero weight) and per body (any
     of its vertices) over the contact set's row ``tid``: the velocity switches from ``v-`` to
-    ``v+`` then (a minimum: the same on every device whatever the order)."""
+    ``v+`` then (a minimum: the same on every device whatever the order, for the finite times of
+    a finite state)."""
     c = wp.tid()
     q = vertices[c]
     w = weights[c]
@@ -543,7 +548,7 @@ def owner_rows_finish_kernel(
     body_row: wp.array(dtype=wp.int32),
 ):
     """Each particle's / body's contact row for the time-of-impact integration
-    (:func:`kernels.contact.time_of_impact_particles_kernel`): -1 none, -2 a member of an impact
+    (:func:`kernels.contact.time_of_impact_kernel`): -1 none, -2 a member of an impact
     zone (nonzero zone flag), else the row of :func:`owner_rows_kernel`'s key."""
     i = wp.tid()
     if i < particle_count:

@@ -8,7 +8,8 @@ import numpy as np
 import warp as wp
 
 from collision.contacts import Contacts, Hits
-from kernels.contact_set import (KEY_NONE, add_contacts_kernel, match_contacts_kernel, owner_rows_finish_kernel,
+from kernels.contact_set import (KEY_NONE, add_contacts_kernel, gather_hits_kernel, match_contacts_kernel,
+                                 owner_rows_finish_kernel,
                                  owner_rows_kernel, owner_rows_reset_kernel, owner_times_kernel,
                                  owner_times_reset_kernel, sort_keys_kernel)
 
@@ -69,7 +70,7 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
     wp.launch(add_contacts_kernel, 1, [
         H.count, 0, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
         H.targets, cs.count, 1, cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed,
-        cs.normal_impulse, cs.friction_impulse, H.source_row, cs.counter, *merge], device=DEV)
+        cs.normal_impulse, cs.friction_impulse, cs.counter, *merge], device=DEV)
     cs.count = int(cs.counter.numpy()[0])
     assert cs.count == 3
     np.testing.assert_array_equal(cs.host("pair"), [[1, 2], [3, 4], [5, 6]])
@@ -79,7 +80,6 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
     np.testing.assert_array_equal(cs.host("timed"), [0, 1, 0])  # source 1 (a root) is differentiated, 4 not
     np.testing.assert_array_equal(cs.host("normal_impulse"), [2.0, 3.0, 0.0])
     np.testing.assert_array_equal(cs.host("friction_impulse")[:, 0], [0.1, 0.1, 0.0])
-    np.testing.assert_array_equal(H.host("source_row"), [1, 2, -1])
     np.testing.assert_array_equal(merge[0].numpy()[:3], [-1, 0, 1])  # the hit each row takes
     np.testing.assert_array_equal(merge[1].numpy()[:3], [0, 0, 0])  # row 1 took the earlier time
     np.testing.assert_array_equal(merge[2].numpy()[:3], [0, 1, 0])  # and kept its larger target
@@ -145,3 +145,58 @@ def test_radix_sort_gives_the_heap_sorts_order():
         wp.utils.radix_sort_pairs(radix_k, radix_v, n)
         np.testing.assert_array_equal(radix_k.numpy()[:n], heap_k.numpy()[:n])
         np.testing.assert_array_equal(radix_v.numpy()[:n], heap_v.numpy()[:n])
+
+
+def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
+    """The contact set's growth and its matching assume each pair once per detection pass: the
+    gather kernel counts repeated keys, and the collision handler raises instead of adding a
+    pair twice (a broad phase that returned a candidate twice)."""
+    n = 4
+    keys = wp.array(np.array([_key(0, 1, 2), _key(0, 3, 4), _key(0, 3, 4), _key(1, 5, 6)] * 2, dtype=np.int64),
+                    dtype=wp.int64, device=DEV)
+    order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=DEV)
+    H = Hits(DEV)
+    mesh = dict(kind=wp.array(np.array([0, 0, 0, 1], dtype=np.int32), dtype=wp.int32, device=DEV),
+                pairs=wp.array(np.array([[1, 2], [3, 4], [3, 4], [5, 6]], dtype=np.int32), dtype=wp.vec2i, device=DEV),
+                vertices=wp.zeros(n, dtype=wp.vec4i, device=DEV), time=wp.zeros(n, dtype=wp.float64, device=DEV),
+                source=wp.zeros(n, dtype=wp.int32, device=DEV))
+    repeated = wp.zeros(1, dtype=wp.int32, device=DEV)
+    for k in (keys, wp.array(np.array([_key(0, 1, 2), _key(0, 3, 4), _key(0, 5, 4), _key(1, 5, 6)] * 2,
+                                      dtype=np.int64), dtype=wp.int64, device=DEV)):
+        repeated.zero_()
+        wp.launch(gather_hits_kernel, n, [k, order, n, mesh["kind"], mesh["pairs"], mesh["vertices"], mesh["time"],
+                                          mesh["source"], wp.zeros(1, dtype=wp.vec2i, device=DEV),
+                                          wp.zeros(1, dtype=wp.float64, device=DEV), 2, 9, H.kind, H.pair, H.vertices,
+                                          H.detected, H.source, H.plane, H.row, repeated], device=DEV)
+        assert int(repeated.numpy()[0]) == (1 if k is keys else 0)
+
+    import pytest
+
+    from collision.response import ImpulseCollisionHandler
+    from sim.builder import ModelBuilder
+    from sim.mesh_io import box_mesh
+
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_particle((0.0, 0.0, 0.1 + 5e-4), velocity=(0.0, 0.0, -1.0), mass=0.1)
+    b.add_static_mesh(*box_mesh((0.2, 0.2, 0.1)))
+    b.set_contact(restitution=0.0, friction=0.0, thickness=1e-3)
+    model = b.finalize()
+    handler = ImpulseCollisionHandler(model)
+    s0, s1 = model.state(), model.state()
+    s1.particle_q.assign(s0.particle_q.numpy() + [0.0, 0.0, -1.0 / 240])
+    s1.particle_qd.assign(s0.particle_qd.numpy())
+    assert handler(s0, s1, 1.0 / 240) is not None  # the particle rests on the box: a proximity contact
+    near = handler._narrow.near_count
+
+    def near_twice(*args, **kwargs):  # every pair the proximity test finds, reported twice
+        count = near(*args, **kwargs)
+        hits = handler._narrow.hits
+        for name in ("kind", "pairs", "offset", "weights", "vertices"):
+            a = hits[name].numpy()
+            a[count:2 * count] = a[:count]
+            hits[name].assign(a)
+        return 2 * count
+
+    handler._narrow.near_count = near_twice
+    with pytest.raises(RuntimeError, match="pair twice"):
+        handler(s0, s1, 1.0 / 240)
