@@ -127,6 +127,17 @@ class Arena:
             out.zero_()
         return out
 
+    def mark(self) -> dict:
+        """How many square arrays this call has taken so far (for :meth:`release_squares`)."""
+        return {key: k for key, k in self._taken.items() if key[1]}
+
+    def release_squares(self, mark: dict) -> None:
+        """Hands the square arrays taken since ``mark`` out again (the scratch matrices of a
+        finished solve: the caller keeps none of them)."""
+        for key in self._taken:
+            if key[1]:
+                self._taken[key] = mark.get(key, 0)
+
 class RecordedLaunches:
     """Kernel launches recorded on the first call with a key and replayed after that.
 

@@ -259,6 +259,18 @@ class ContactReplay:
             (particle_qd, body_qd, normal impulses (C,) vec3): device arrays; the normal
             impulses are those of the last normal pass (after friction, when there is any).
         """
+        # without a tape, its dense matrices are scratch: the next solve of the call reuses them
+        # (an active set's repairs solve again and again: a cloth resting on a box with a few
+        # hundred unknowns kept over a gigabyte of matrices to the end of each call)
+        mark = None if any_tape() else self._arena.mark()
+        try:
+            return self._solve(contacts, vertices, kinds, count, active, lever, inv_inertia_w, vm_p, vm_b, share)
+        finally:
+            if mark is not None:
+                self._arena.release_squares(mark)
+
+    def _solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
+        """:meth:`solve` itself."""
         _, targets, weights, normals = contacts
         c = count
         pairs_w = self.frozen(vertices, c)

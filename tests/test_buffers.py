@@ -134,3 +134,24 @@ def test_zero_clears_through_the_host_view_and_is_recorded_by_a_cpu_capture():
     counter.assign(np.array([7, 7], dtype=np.int32))
     wp.capture_launch(capture.graph)
     np.testing.assert_array_equal(counter.numpy(), [0, 0])
+
+
+def test_arena_hands_released_squares_out_again_and_keeps_the_vectors():
+    """A solve's dense matrices are scratch: after ``release_squares(mark)`` the next square
+    take of the call gets the same memory (a cloth's active-set repairs kept over a gigabyte of
+    matrices to the end of each call before), while vectors taken since the mark stay the
+    caller's."""
+    from collision.buffers import Arena
+
+    arena = Arena("cpu")
+    arena.begin()
+    kept = arena.take(5, wp.float64)
+    mark = arena.mark()
+    first = arena.take((6, 6), wp.float64)
+    vector = arena.take(5, wp.float64)
+    arena.release_squares(mark)
+    again = arena.take((7, 7), wp.float64)  # the same size class (8)
+    assert again.ptr == first.ptr
+    assert arena.take(5, wp.float64).ptr not in (kept.ptr, vector.ptr)
+    arena.begin()
+    assert arena.take(5, wp.float64).ptr == kept.ptr
