@@ -75,8 +75,8 @@ from collision.mesh import VERTEX_STATIC as _STATIC
 from collision.mesh import CollisionMesh
 from collision.replay import ContactReplay, active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (contact_geometry_kernel, planned_substep_kernel, pose_substep_kernel,
-                             pose_vertices_kernel, solve_contacts_kernel)
+from kernels.contact import (contact_geometry_kernel, planned_substep_kernel, pose_positions_kernel,
+                             pose_substep_kernel, solve_contacts_kernel)
 from kernels.contact_set import (active_set_update_kernel, add_contacts_kernel, approach_kernel,
                                  flags_differ_kernel, friction_share_count_kernel, friction_share_kernel,
                                  gather_hits_kernel, hit_keys_kernel, initial_active_kernel, match_contacts_kernel,
@@ -474,24 +474,17 @@ class ImpulseCollisionHandler:
     # ------------------------------------------------------------------------------------------
     # geometry
 
-    def _pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None):
+    def _pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None) -> wp.array:
         """World positions (V + 1, 3) [m] of the collidable vertices and the dummy vertex at the
-        origin, and their lever arms (V + 1, 3) [m] from the owning body's centre of mass (0
-        for the others), for the device arrays ``particle_q`` (P,) and ``body_q`` (B,): the
-        replay's pose (:func:`kernels.contact.pose_vertices_kernel`) into the handler's buffers
-        ``name``.
-
-        Returns:
-            (positions, lever arms) on the host (on the CPU views of the buffers, overwritten by
-            the next pose into ``name``) and the same two device arrays.
-        """
+        origin for the device arrays ``particle_q`` (P,) and ``body_q`` (B,)
+        (:func:`kernels.contact.pose_positions_kernel`), in the handler's device buffer ``name``
+        (overwritten by the next pose into ``name``)."""
         n, R = self.n_vertices + 1, self._replay
         x = self._staging.empty("x_" + name, n, wp.vec3d)
-        lever = self._staging.empty("lever_" + name, n, wp.vec3d)
-        self._launches.launch(("pose", name), pose_vertices_kernel, n, [
+        self._launches.launch(("pose", name), pose_positions_kernel, n, [
             particle_q if self.n_particles else R.empty_vec, body_q if self.n_bodies else R.empty_pose,
-            R.vertex_type, R.vertex_owner, R.local, x, lever])
-        return host(x)[:n], host(lever)[:n], x, lever
+            R.vertex_type, R.vertex_owner, R.local, x])
+        return x
 
     def _pose_substep(self, state_in: State, state_pred: State):
         """:meth:`_pose` of ``state_in`` and of ``state_pred`` and the bodies' world inverse
@@ -499,9 +492,10 @@ class ImpulseCollisionHandler:
         (:func:`kernels.contact.pose_substep_kernel`).
 
         Returns:
-            (start positions, start lever arms, their device arrays (2), predicted positions,
-            inverse inertia device array): host arrays (V + 1, 3) as :meth:`_pose`'s (the
-            predicted positions' device array is kept in ``_x1_pred_w``).
+            (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`_pose`'s), the
+            start positions' and lever arms' device arrays, the predicted positions on the host,
+            the inverse inertia device array); the predicted positions' device array is kept in
+            ``_x1_pred_w``.
         """
         n, R, B = self.n_vertices + 1, self._replay, self.n_bodies
         empty = self._staging.empty
@@ -515,7 +509,7 @@ class ImpulseCollisionHandler:
             R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
             n, B, x0, lever0, x1, inv_inertia_w])
         self._x1_pred_w = x1
-        return host(x0)[:n], host(lever0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
+        return host(x0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
 
     def _cover(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float) -> None:
         """The substep's broad-phase cover (:meth:`CandidateNarrowPhase.cover`) of the motion
@@ -611,7 +605,7 @@ class ImpulseCollisionHandler:
         R = self._replay
         # the vertices at the start (with the rigid ones' lever arms) and the predicted end;
         # host views for the broad-phase cover's box tests (per vertex, not per contact)
-        x0, _, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
+        x0, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
         delta = self.separation
         self._sep_speed = delta / h
         cs = self._contacts
@@ -901,7 +895,7 @@ class ImpulseCollisionHandler:
         launch("plan", planned_substep_kernel, P + B + (0 if B else n), [
             *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
         if B:
-            x1 = self._pose("planned", x1p if P else None, bq1)[2]
+            x1 = self._pose("planned", x1p if P else None, bq1)
         return x1p, bq1, host(x1)[:n], x1, (tp, tb)
 
     def _zone_motion(self, zones: "_ImpactZones", state_in: State, vel):
@@ -1062,7 +1056,7 @@ class ImpulseCollisionHandler:
         with paused_tape():  # decisions: off the tape
             # one broad-phase query while the rounds' motion stays near the predicted one
             x0 = host(X0)
-            x1_pred = self._pose("predicted", state_pred.particle_q, state_pred.body_q)[0]
+            x1_pred = host(self._pose("predicted", state_pred.particle_q, state_pred.body_q))[: nv + 1]
             self._cover(x0[:nv], x1_pred[:nv], delta)
             found = self._proximity_hits(x0, x1_pred, X0, delta)
         if found:
