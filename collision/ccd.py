@@ -215,6 +215,10 @@ class CandidateNarrowPhase:
         init_warp()
         self.settings = _variants.check_settings(precision, max_iterations, tolerance, tolerance_scale)
         self._kernels = _ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
+        if self._kernels is not _k:
+            # a generated variant compiles here, not at the first contact of a run (which would
+            # put seconds of compilation into a timed step)
+            wp.load_module(self._kernels.pair_ccd_kernel.module, device=broad_phase.device)
         self._float32 = _is_float32(self._kernels)
         self._real = wp.float32 if self._float32 else wp.float64
         self.broad_phase = broad_phase
