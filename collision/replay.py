@@ -112,6 +112,12 @@ class ContactReplay:
         self.empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self.empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
         self._no_int = wp.zeros(1, dtype=wp.int32, device=device)
+        # stand-ins for outputs a launch has no thread for (never read: the stand-ins above are
+        # inputs that taped launches read, which no launch may write afterwards)
+        self._unused_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
+        self._unused_impulses = wp.zeros(1, dtype=wp.vec3d, device=device)
+        self._unused_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
+        self._unused_pose = wp.zeros(1, dtype=wp.transformd, device=device)
         self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=device)
         self._no_float = wp.zeros(1, dtype=wp.float64, device=device)
         self.largest_system = 0
@@ -331,10 +337,10 @@ class ContactReplay:
         p_count = vp.shape[0] if vp is not None else 0
         b_count = vb.shape[0] if vb is not None else 0
         c = impulses.shape[0] if solved is None else solved[3].shape[0]
-        out_p = self._zeros(p_count, wp.vec3d) if p_count else self.empty_vec
-        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self.empty_twist
+        out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
+        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
         unknowns, solution, normals, normal = solved if solved is not None else \
-            (self._no_int, self._no_float, self.empty_vec, self.empty_vec)
+            (self._no_int, self._no_float, self.empty_vec, self._unused_impulses)
         wp.launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
                   inputs=[c, p_count, int(solved is not None), unknowns, solution, normals,
                           impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
@@ -437,5 +443,5 @@ class ContactReplay:
                               particle_owner, self._or(bq0, self.empty_pose), self._or(bq_pred, self.empty_pose),
                               self._or(vm_b, self.empty_twist), self._or(vb, self.empty_twist), body_owner, toi,
                               wp.float64(h)],
-                      outputs=[self._or(xp, self.empty_vec), self._or(bq, self.empty_pose)], device=self.device)
+                      outputs=[self._or(xp, self._unused_vec), self._or(bq, self._unused_pose)], device=self.device)
         return (xp if p_count else x_pred), (bq if b_count else bq_pred)

@@ -480,7 +480,7 @@ class ImpulseCollisionHandler:
         (:func:`kernels.contact.pose_positions_kernel`), in the handler's device buffer ``name``
         (overwritten by the next pose into ``name``)."""
         n, R = self.n_vertices + 1, self._replay
-        x = self._staging.empty("x_" + name, n, wp.vec3d)
+        x = self._staging.empty("posed_" + name, n, wp.vec3d)  # not the substep pose's buffers
         self._launches.launch(("pose", name), pose_positions_kernel, n, [
             particle_q if self.n_particles else R.empty_vec, body_q if self.n_bodies else R.empty_pose,
             R.vertex_type, R.vertex_owner, R.local, x])

@@ -1,4 +1,5 @@
-"""Test-session set-up: a Warp kernel cache per pytest-xdist worker.
+"""Test-session set-up: a Warp kernel cache per pytest-xdist worker, and Warp's check that no
+array a tape read is written before its backward pass.
 
 Two workers compiling the same module into one cache folder can race; each worker (and every
 scene subprocess it starts, which inherits the environment) gets its own folder under
@@ -10,6 +11,12 @@ from pathlib import Path
 
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
 os.environ["WARP_CACHE_PATH"] = str(Path(__file__).resolve().parent.parent / ".warp_cache" / _worker)
+
+import warp as wp  # noqa: E402  (after the cache path)
+
+# every taped launch marks the arrays it reads; a later write to one of them by a launch or a
+# copy (which would corrupt the backward pass silently) is an error (pyproject's filterwarnings)
+wp.config.verify_autograd_array_access = True
 
 
 def pytest_collection_modifyitems(session, config, items):
