@@ -876,13 +876,8 @@ class ImpulseCollisionHandler:
         """
         empty, R, launch = self._staging.empty, self._replay, self._launches.launch
         P, B, n = self.n_particles, self.n_bodies, self.n_vertices + 1
-        cs = self._contacts
         tp, tb = self._particle_time_w, self._body_time_w
-        pz, bz = zone_flags if zone_flags is not None else (self._no_zone_p, self._no_zone_b)
-        launch("owner_reset", owner_times_reset_kernel, P + B, [P, pz, bz, tp, tb])
-        if cs.count:
-            launch("owner_times", owner_times_kernel, cs.count, [
-                cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, tp, tb])
+        self._owner_times(tp, tb, zone_flags if zone_flags is not None else (self._no_zone_p, self._no_zone_b))
         x1p, bq1 = self._result.particle_q, self._result.body_q
         x1 = empty("x_planned", n, wp.vec3d)
         particles = [state_in.particle_q, state_pred.particle_q, state_pred.particle_qd, vel[0], tp] if P else \
@@ -897,6 +892,18 @@ class ImpulseCollisionHandler:
         if B:
             x1 = self._pose("planned", x1p if P else None, bq1)
         return x1p, bq1, host(x1)[:n], x1, (tp, tb)
+
+    def _owner_times(self, particle_time: wp.array, body_time: wp.array, zone_flags) -> None:
+        """Each particle's / body's earliest contact time [s] in the contact set into
+        ``particle_time`` (P,) / ``body_time`` (B,): inf without one, 0 for the members of impact
+        zones (``zone_flags``: (P,), (B,) int32 device arrays), which move rigidly over the whole
+        substep (:func:`kernels.contact_set.owner_times_kernel`)."""
+        cs, R, P = self._contacts, self._replay, self.n_particles
+        self._launches.launch("owner_reset", owner_times_reset_kernel, P + self.n_bodies,
+                              [P, *zone_flags, particle_time, body_time])
+        if cs.count:
+            self._launches.launch("owner_times", owner_times_kernel, cs.count, [
+                cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, particle_time, body_time])
 
     def _zone_motion(self, zones: "_ImpactZones", state_in: State, vel):
         """Sets the velocities ``vel`` of the impact zones' members to their zone's
@@ -969,11 +976,9 @@ class ImpulseCollisionHandler:
             tp, tb = take(max(P, 1), wp.float64, zero=False, grad=False), take(max(B, 1), wp.float64, zero=False, grad=False)
             po, bo = take(max(P, 1), wp.int32, zero=False, grad=False), take(max(B, 1), wp.int32, zero=False, grad=False)
             kp, kb = self._staging.empty("owner_key_p", P, wp.int32), self._staging.empty("owner_key_b", B, wp.int32)
-            launch("r_owner_reset", owner_times_reset_kernel, P + B, [P, *zone_flags, tp, tb])
+            self._owner_times(tp, tb, zone_flags)
             launch("r_owner_key_reset", owner_rows_reset_kernel, P + B, [P, kp, kb])
             if cs.count:
-                launch("r_owner_times", owner_times_kernel, cs.count, [
-                    cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, tp, tb])
                 launch("r_owner_rows", owner_rows_kernel, cs.count, [
                     cs.vertices, cs.weights, cs.toi, cs.timed, R.vertex_type, R.vertex_owner, tp, tb, kp, kb])
             launch("r_owner_finish", owner_rows_finish_kernel, P + B, [P, kp, kb, *zone_flags, po, bo])
