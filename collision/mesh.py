@@ -36,6 +36,51 @@ def _np(a, tail: tuple, dtype=np.float64) -> np.ndarray:
     return np.asarray(arr, dtype=dtype).reshape(-1, *tail)
 
 
+FLAT_EDGE_COSINE = 1.0 - 1e-12
+"""Two faces sharing an edge are coplanar when the cosine between their unit normals is at
+least this (a dihedral angle below ~1.4e-6 rad: the float64 rounding of a box's split face,
+with room to spare, and far below any modelled crease)."""
+
+
+def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Which ``edges`` (E, 2) lie between exactly two ``faces`` (F, 3) that are coplanar and face
+    the same way (vertex positions ``vertices`` (V, 3)), such as a box face's diagonal.
+
+    Such an edge is no collision feature: whatever touches it touches the faces' plane inside
+    the flat region first or at the same time, which the vertex-face pairs of that region and
+    the edge-edge pairs of its border edges report, with the plane's normal. The edge's own
+    edge-edge pairs would report the same touch with the normal of the two edges' cross
+    product, which is sideways for an edge lying in the plane (a box dropped flat onto another
+    box's face then turns about the vertical).
+
+    Returns:
+        bool (E,) mask.
+    """
+    flat = np.zeros(len(edges), dtype=bool)
+    if not len(edges) or not len(faces):
+        return flat
+    f = np.asarray(faces, dtype=np.int64)
+    y = vertices[f]
+    normal = np.cross(y[:, 1] - y[:, 0], y[:, 2] - y[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    ok = length > 0.0
+    normal[ok] /= length[ok, None]
+    # each face's three edges as (lo, hi) keys, matched to the edge rows
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    n = int(max(edges.max(), f.max())) + 1
+    row = np.searchsorted(edges[:, 0] * n + edges[:, 1], e[:, 0] * n + e[:, 1])
+    face = np.tile(np.arange(len(f)), 3)
+    count = np.bincount(row, minlength=len(edges))
+    order = np.argsort(row, kind="stable")
+    two = np.flatnonzero(count == 2)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    fa, fb = face[order[start[two]]], face[order[start[two] + 1]]
+    cos = np.einsum("ij,ij->i", normal[fa], normal[fb])
+    flat[two] = ok[fa] & ok[fb] & (cos >= FLAT_EDGE_COSINE)
+    return flat
+
+
 @dataclass
 class CollisionMesh:
     """Vertices, faces and edges of everything in a model that can collide (see the module
@@ -51,6 +96,13 @@ class CollisionMesh:
             static faces.
         face_offsets: (0, T, T + Fs, F): where the cloth, body and static faces start and end.
         edges: (E, 2) int64 unique edges of ``faces`` (:func:`collision.broad_phase.mesh_edges`).
+        feature_edges: (E', 2) int64, the rows of ``edges`` that are collision features: every
+            cloth edge, and the rigid and static edges except those between two coplanar faces
+            (:func:`flat_edges`), which add nothing the faces do not hold and whose edge-edge
+            normals point sideways.
+        flat_edges: (E - E', 2) int64, the other rows of ``edges``: edges inside a flat region
+            of a rigid or static surface (vertex-face contacts whose closest point lies on one
+            take the face's normal, :func:`kernels.contact.contact_geometry_kernel`).
         vertex_type: (V,) int64, ``VERTEX_*``.
         vertex_owner: (V,) int64: particle index, body index, or 0 for static vertices.
         local: (V, 3) float64: body-frame positions [m] of rigid vertices, world positions of
@@ -66,6 +118,8 @@ class CollisionMesh:
     faces: np.ndarray
     face_offsets: tuple
     edges: np.ndarray
+    feature_edges: np.ndarray
+    flat_edges: np.ndarray
     vertex_type: np.ndarray
     vertex_owner: np.ndarray
     local: np.ndarray
@@ -85,6 +139,10 @@ class CollisionMesh:
         S, G = len(shape_vertices), len(static_vertices)
         faces = np.concatenate([tris, shape_faces + P, static_faces + P + S]).astype(np.int64)
         T, Fs = len(tris), len(shape_faces)
+        edges = mesh_edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int64)
+        local = np.concatenate([np.zeros((P, 3)), shape_vertices, static_vertices]).reshape(-1, 3)
+        # rigid and static faces keep their shape; cloth faces bend, so all their edges stay
+        flat = flat_edges(edges, faces[T:], local)
         return cls(
             particle_count=P,
             body_count=B,
@@ -93,11 +151,13 @@ class CollisionMesh:
             vertex_count=P + S + G,
             faces=faces,
             face_offsets=(0, T, T + Fs, len(faces)),
-            edges=mesh_edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int64),
+            edges=edges,
+            feature_edges=edges[~flat],
+            flat_edges=edges[flat],
             vertex_type=np.concatenate([np.full(P, VERTEX_PARTICLE), np.full(S, VERTEX_BODY),
                                         np.full(G, VERTEX_STATIC)]).astype(np.int64),
             vertex_owner=np.concatenate([np.arange(P), shape_body, np.zeros(G)]).astype(np.int64),
-            local=np.concatenate([np.zeros((P, 3)), shape_vertices, static_vertices]).reshape(-1, 3),
+            local=local,
             device=model.device,
         )
 

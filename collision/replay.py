@@ -10,10 +10,14 @@ the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differen
   (mollified implicit derivative, bounded by ``max_derivative``);
 * weights and normals at ``t*`` come from the one closest-point definition
   (:func:`kernels.point_triangle.point_triangle_closest`, :func:`kernels.edge_edge.segment_segment_closest`);
-* the normal impulses solve the active set's equations exactly (dense LU in a Warp kernel); the
-  tape holds the implicit adjoint of that solve (a solve with the transposed matrix), never
-  iterations; Coulomb friction per contact follows (stick or slide decided in the kernel), and
-  the normal impulses are solved again on top of it;
+* the impulses solve the active set's equations exactly (dense LU in a Warp kernel, refined
+  once on its residual); the tape holds the implicit adjoint of each solve (a solve with the
+  transposed matrix), never iterations. Coulomb friction: all active contacts sticking (normal
+  and tangential impulses in one system) when every impulse lies in its cone, else all sliding
+  (``j_n (n - mu s)`` against the slip ``s``) when none stops, else each contact's stopping
+  impulse with the normal impulses solved again on top (which regime: a decision);
+* the push: the separation ``SEPARATION_RATE (delta - d)`` restored by a second solve whose
+  velocities move the positions but never reach the velocities;
 * time-of-impact integration ``x0 + t* v- + (h - t*) v+`` per particle and body;
 * the fail-safe's impact zones (membership decided on the host) as their momentum-conserving
   rigid motion (:meth:`ContactReplay.zone_velocities`).
@@ -40,6 +44,12 @@ constraints on the same relative velocity) make it singular; scaling the diagona
 box resting face-down with friction: 1e-10 leaves the matrix so ill-conditioned that finite
 differences of the result scatter by 100 %; 1e-8 and 1e-6 give gradients within 2e-5 and 4e-4
 of central differences at step 1e-5 and 1e-6.)"""
+
+
+STICKING_MAX_CONTACTS = 48
+"""Most active contacts for which a solve tries static friction as one system (three unknowns
+each, a dense solve of ``(3 n)^3``): a few resting boxes. Larger sets (a draped cloth) take
+the friction pass (each contact's stopping impulse, shared)."""
 
 
 def active_tape():
@@ -90,9 +100,15 @@ class ContactReplay:
     """
 
     def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
-                 planes, friction: float, restitution: float, device):
+                 planes, friction: float, restitution: float, device, flat_edges=None):
         self.device = device
         self.n_vertices = len(vertex_type)
+        # the flat edges (collision.mesh.flat_edges) as sorted keys lo * base + hi, for the
+        # contact geometry's look-up (one key that matches no edge when there are none)
+        self.flat_key_base = self.n_vertices + 1
+        flat = np.zeros((0, 2), np.int64) if flat_edges is None else np.sort(np.asarray(flat_edges, np.int64), axis=1)
+        keys = np.sort(flat[:, 0] * self.flat_key_base + flat[:, 1]) if len(flat) else np.full(1, -1, np.int64)
+        self.flat_keys = wp.array(keys, dtype=wp.int64, device=device)
         vt = np.append(np.asarray(vertex_type, dtype=np.int32), 2)  # the dummy is static
         vo = np.append(np.asarray(vertex_owner, dtype=np.int32), 0)
         self.vertex_type = wp.array(vt.astype(np.int32), dtype=wp.int32, device=device)
@@ -201,11 +217,14 @@ class ContactReplay:
         )
         return x
 
-    def geometry(self, x0, x1, lever, rows, count: int, vm_p, vc_p, vm_b, vc_b, particle_time, body_time, h,
-                 separation, separation_rate, touching_relative, max_derivative, nearest_slot: bool = False):
-        """Times of impact [s], weights, normals and targets of ``count`` new contact rows.
+    def geometry(self, x0, x1, lever, rows, count: int, v0_p, v0_b, vm_p, vc_p, vm_b, vc_b, particle_time, body_time,
+                 h, separation, separation_rate, touching_relative, max_derivative, nearest_slot: bool = False):
+        """Times of impact [s], weights, normals, targets (restitution alone) and pushes (the
+        separation's speed, restored at the position level) of ``count`` new contact rows.
 
-        ``rows``: device arrays (``vertices`` (vec4i), ``kind``, ``source``, ``detected`` (fraction
+        ``v0_p``, ``v0_b``: the velocities at the start of the substep (the forces' change
+        before ``t*`` is reflected, not the change after it). ``rows``: device arrays
+        (``vertices`` (vec4i), ``kind``, ``source``, ``detected`` (fraction
         of the substep), ``plane``; :class:`collision.contacts.Hits`). ``particle_time`` /
         ``body_time``: device times of impact already assigned to each owner (inf for none).
         ``nearest_slot``: take the cubic's root nearest the detected fraction rather than the one
@@ -217,41 +236,48 @@ class ContactReplay:
         w = self._zeros(c, wp.vec4d)
         n = self._zeros(c, wp.vec3d)
         target = self._zeros(c, wp.float64)
+        push = self._zeros(c, wp.float64)
         frozen = self.frozen
         wp.launch(
             K.contact_geometry_kernel, dim=c,
             inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
                     frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
                     frozen(rows["plane"], c), self.planes,
+                    self._or(v0_p, self.empty_vec), self._or(v0_b, self.empty_twist),
                     self._or(vm_p, self.empty_vec), self._or(vc_p, self.empty_vec),
                     self._or(vm_b, self.empty_twist), self._or(vc_b, self.empty_twist),
                     particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
-                    wp.float64(max_derivative), int(bool(nearest_slot))],
-            outputs=[toi, w, n, target], device=self.device,
+                    wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys,
+                    wp.int64(self.flat_key_base), 1],
+            outputs=[toi, w, n, target, push], device=self.device,
         )
-        return toi, w, n, target
+        return toi, w, n, target, push
 
     def merge(self, old, new, new_index, keep_old_toi, keep_old_target, count: int):
-        """The grown contact set's (toi, targets, weights, normals) (``count`` rows): old rows
-        (``new_index`` -1) or this round's detections, as decided per row (device int arrays,
-        :func:`kernels.contact_set.add_contacts_kernel`'s; fresh while a tape records)."""
+        """The grown contact set's (toi, targets, weights, normals, pushes) (``count`` rows): old
+        rows (``new_index`` -1) or this round's detections, as decided per row (device int
+        arrays, :func:`kernels.contact_set.add_contacts_kernel`'s; fresh while a tape records)."""
         c = count
-        out = (self._zeros(c, wp.float64), self._zeros(c, wp.float64), self._zeros(c, wp.vec4d), self._zeros(c, wp.vec3d))
+        out = (self._zeros(c, wp.float64), self._zeros(c, wp.float64), self._zeros(c, wp.vec4d), self._zeros(c, wp.vec3d),
+               self._zeros(c, wp.float64))
+        old_count = 0 if old is None else old[0].shape[0]
         if old is None:
-            old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d))
+            old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d),
+                   self._zeros(1, wp.float64))
         wp.launch(
             K.merge_contacts_kernel, dim=c,
-            inputs=[*old, *new, new_index, keep_old_toi, keep_old_target],
+            inputs=[*old[:4], *new[:4], old[4], new[4], new_index, keep_old_toi, keep_old_target, old_count],
             outputs=list(out), device=self.device,
         )
         return out
 
     def solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
-        """Exact normal impulses of an active set, then Coulomb friction, and the velocities.
+        """Exact impulses of an active set (refined once), with Coulomb friction, the velocities
+        after them and those that move the positions (with the push).
 
         Args:
-            contacts: (toi, targets, weights, normals) device arrays of the whole set (C,).
+            contacts: (toi, targets, weights, normals, pushes) device arrays of the whole set (C,).
             vertices, kinds: the set's device (C,) vec4i vertex indices and int32 kinds
                 (:class:`collision.contacts.Contacts`); ``count`` = C.
             active: device int32 (C,): the contacts whose normal relative velocity must end at
@@ -262,8 +288,11 @@ class ContactReplay:
                 :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
 
         Returns:
-            (particle_qd, body_qd, normal impulses (C,) vec3): device arrays; the normal
-            impulses are those of the last normal pass (after friction, when there is any).
+            (particle_qd, body_qd, normal impulses (C,) vec3, (particle_qd, body_qd) that move
+            the positions): device arrays; the normal impulses are the normal parts of the
+            accepted solve's (the sticking or sliding one, or the last normal pass after the
+            friction pass); the last pair adds the push, the separation restored at the
+            position level (:func:`kernels.contact.push_rhs_kernel`).
         """
         # without a tape, its dense matrices are scratch: the next solve of the call reuses them
         # (an active set's repairs solve again and again: a cloth resting on a box with a few
@@ -277,7 +306,7 @@ class ContactReplay:
 
     def _solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
         """:meth:`solve` itself."""
-        _, targets, weights, normals = contacts
+        _, targets, weights, normals, pushes = contacts
         c = count
         pairs_w = self.frozen(vertices, c)
         kinds_w = self.frozen(kinds, c)
@@ -295,8 +324,12 @@ class ContactReplay:
                       device=self.device)
         n_u = int(unknown_count.numpy()[0])
         masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
+
+        def pushed(vp, vb):
+            return self._pushed(active, c, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb)
+
         if not n_u:
-            return vm_p, vm_b, self._zeros(c, wp.vec3d)
+            return vm_p, vm_b, self._zeros(c, wp.vec3d), pushed(vm_p, vm_b)
         self.largest_system = max(self.largest_system, n_u)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
         wp.launch(K.delassus_kernel, dim=(n_u, n_u),
@@ -315,7 +348,29 @@ class ContactReplay:
             normal = self._zeros(c, wp.vec3d)
             return normal, self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, normal))
 
-        normal, (vp, vb) = normal_pass(vm_p, vm_b)
+        def refined_pass(vp, vb):
+            # a second pass on the first one's residual (iterative refinement): the regularised
+            # matrix leaves every target missed by ~REGULARIZATION relative, which redundant
+            # contacts (a face resting on four corners) turn into a spin; after the second
+            # pass the miss is ~REGULARIZATION^2
+            first, (vp, vb) = normal_pass(vp, vb)
+            second, (vp, vb) = normal_pass(vp, vb)
+            return self._sum(first, second, c), (vp, vb)
+
+        normal, (vp, vb) = refined_pass(vm_p, vm_b)
+        if share is not None and self.friction > 0.0 and n_u <= STICKING_MAX_CONTACTS:
+            # static friction first: every active contact sticking, its whole relative velocity
+            # solved jointly (normal target, no slip); taken when every impulse lies in its
+            # friction cone (a decision, like the active set), else the friction pass below
+            sticking = self._sticking(uc, cu, c, n_u, normal, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
+            if sticking is not None:
+                return (*sticking, pushed(sticking[0], sticking[1]))
+            # then every active contact sliding against its slip after the normal pass, its
+            # friction impulse mu j_n in the same solve as j_n
+            sliding = self._sliding(uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
+                                    vp, vb)
+            if sliding is not None:
+                return (*sliding, pushed(sliding[0], sliding[1]))
         if share is not None and self.friction > 0.0:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
@@ -326,8 +381,150 @@ class ContactReplay:
                               self._or(vb, self.empty_twist), wp.float64(self.friction)],
                       outputs=[friction], device=self.device)
             vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b)
-            normal, (vp, vb) = normal_pass(vp_f, vb_f)
+            normal, (vp, vb) = refined_pass(vp_f, vb_f)
+        return vp, vb, normal, pushed(vp, vb)
+
+    def _sticking(self, uc, cu, c: int, n_u: int, normal, contacts, pairs_w, weights, sides, masses, lever, vm_p,
+                  vm_b):
+        """Every active contact sticking: three unknowns each (:func:`kernels.contact.contact_axis`),
+        the normal relative velocity brought to its target and the tangential one to zero by one
+        exact solve and its refinement. Returns ``(particle_qd, body_qd, normal impulses)`` as
+        :meth:`solve`, or None when some contact's impulse pulls or leaves its friction cone.
+
+        Redundant contacts leave the split of the friction among them free: it is chosen in
+        proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
+        pass's impulses ``normal``, and when that split leaves a contact outside its cone, the
+        first trial's own (a decision, which changes the split, not the motion; under a tape the
+        rejected trial's launches stay recorded, with no gradient reaching them)."""
+        _, targets, _, normals, _ = contacts
+        m = 3 * n_u
+
+        def trial(loads):
+            tangent_weight = self.take(c, wp.float64, zero=False, grad=False)
+            with paused_tape():
+                wp.launch(K.tangent_weights_kernel, dim=1, inputs=[c, cu, loads, normals], outputs=[tangent_weight],
+                          device=self.device)
+            matrix = self._zeros(0, wp.float64, shape=(m, m))
+            wp.launch(K.sticking_delassus_kernel, dim=(m, m),
+                      inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
+                              wp.float64(REGULARIZATION), tangent_weight],
+                      outputs=[matrix], device=self.device)
+            vp, vb, total = vm_p, vm_b, None
+            for _ in range(2):  # the solve and its refinement (see the normal passes)
+                rhs = self._zeros(m, wp.float64)
+                wp.launch(K.sticking_rhs_kernel, dim=m,
+                          inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
+                                  self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                          outputs=[rhs], device=self.device)
+                solution = self._dense_solve(matrix, rhs)
+                impulses = self._zeros(c, wp.vec3d)
+                wp.launch(K.sticking_impulses_kernel, dim=c, inputs=[cu, solution, normals], outputs=[impulses],
+                          device=self.device)
+                vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
+                total = impulses if total is None else self._sum(total, impulses, c)
+            return vp, vb, total
+
+        def outside(total) -> bool:
+            count = self.take(1, wp.int32, grad=False)
+            with paused_tape():
+                wp.launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
+                          outputs=[count], device=self.device)
+            return bool(count.numpy()[0])
+
+        vp, vb, total = trial(normal)
+        if outside(total):
+            # the split by the normal pass's loads left a contact outside its cone: split by
+            # this trial's own loads (a face on a slope: the downhill edge carries more)
+            vp, vb, total = trial(total)
+            if outside(total):
+                return None
+        normal_part = self._zeros(c, wp.vec3d)
+        wp.launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal_part], device=self.device)
+        return vp, vb, normal_part
+
+    def _pushed(self, active, c: int, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb):
+        """The velocities that move the positions: ``vp``, ``vb`` (after the impulses) plus the
+        push, the separation restored at the position level. Its unknowns are the active
+        contacts and those still short of their push (:func:`kernels.contact.push_active_kernel`,
+        a decision); their normal impulses bring each one's normal velocity up to its push
+        (:func:`kernels.contact.push_rhs_kernel`); they never reach the velocities."""
+        flags = self.take(c, wp.int32, zero=False, grad=False)
+        uc = self.take(c, wp.int32, zero=False, grad=False)
+        cu = self.take(c, wp.int32, zero=False, grad=False)
+        count = self.take(1, wp.int32, zero=False, grad=False)
+        with paused_tape():
+            wp.launch(K.push_active_kernel, dim=c,
+                      inputs=[active, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
+                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                      outputs=[flags], device=self.device)
+            wp.launch(active_unknowns_kernel, dim=1, inputs=[c, flags], outputs=[uc, cu, count], device=self.device)
+        n = int(count.numpy()[0])
+        if not n:
+            return vp, vb
+        matrix = self._zeros(0, wp.float64, shape=(n, n))
+        wp.launch(K.delassus_kernel, dim=(n, n),
+                  inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
+                          wp.float64(REGULARIZATION)],
+                  outputs=[matrix], device=self.device)
+        rhs = self._zeros(n, wp.float64)
+        wp.launch(K.push_rhs_kernel, dim=n,
+                  inputs=[uc, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
+                          self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                  outputs=[rhs], device=self.device)
+        solution = self._dense_solve(matrix, rhs)
+        return self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, self._zeros(c, wp.vec3d)))
+
+    def _sliding(self, uc, cu, c: int, n_u: int, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
+                 vp_n, vb_n):
+        """Every active contact sliding: one unknown each, the normal impulse ``j_n``, whose
+        impulse ``j_n (n - mu s)`` carries Coulomb friction against the slip direction ``s`` of
+        the velocities after the normal pass (``vp_n``, ``vb_n``;
+        :func:`kernels.contact.slip_directions_kernel`), solved exactly for the normal targets
+        (and refined, as the normal passes). Returns ``(particle_qd, body_qd, normal
+        impulses)`` as :meth:`solve`, or None when a contact pulls or stops slipping (its slip
+        turns back: it sticks)."""
+        _, targets, _, normals, _ = contacts
+        directions = self._zeros(c, wp.vec3d)
+        wp.launch(K.slip_directions_kernel, dim=c,
+                  inputs=[pairs_w, weights, normals, self.vertex_type, self.vertex_owner, lever,
+                          self._or(vp_n, self.empty_vec), self._or(vb_n, self.empty_twist)],
+                  outputs=[directions], device=self.device)
+        matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
+        mu = wp.float64(self.friction)
+        wp.launch(K.sliding_delassus_kernel, dim=(n_u, n_u),
+                  inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
+                          *masses, wp.float64(REGULARIZATION)],
+                  outputs=[matrix], device=self.device)
+        vp, vb, total = vm_p, vm_b, None
+        for _ in range(2):  # the solve and its refinement
+            rhs = self._zeros(n_u, wp.float64)
+            wp.launch(K.contact_rhs_kernel, dim=n_u,
+                      inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
+                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                      outputs=[rhs], device=self.device)
+            solution = self._dense_solve(matrix, rhs)
+            impulses = self._zeros(c, wp.vec3d)
+            wp.launch(K.sliding_impulses_kernel, dim=c, inputs=[cu, solution, normals, directions, mu],
+                      outputs=[impulses], device=self.device)
+            vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
+            total = impulses if total is None else self._sum(total, impulses, c)
+        rejected = self.take(1, wp.int32, grad=False)
+        with paused_tape():
+            wp.launch(K.slip_reversed_kernel, dim=c,
+                      inputs=[total, normals, directions, cu, pairs_w, weights, self.vertex_type, self.vertex_owner,
+                              lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                      outputs=[rejected], device=self.device)
+        if int(rejected.numpy()[0]):
+            return None
+        normal = self._zeros(c, wp.vec3d)
+        wp.launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
         return vp, vb, normal
+
+    def _sum(self, a, b, count: int):
+        """``a + b`` of two (count,) vec3 arrays into a fresh one."""
+        out = self._zeros(count, wp.vec3d)
+        wp.launch(K.add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
+        return out
 
     def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, solved=None):
         """Velocities after the contact ``impulses`` (C,) (fresh arrays;
@@ -371,6 +568,21 @@ class ContactReplay:
 
             tape.record_func(backward, [matrix, rhs, solution])
         return solution
+
+    def zone_moving(self, moving_p, moving_b, zone_p, zone_b, zone_vp, zone_vb):
+        """The velocities that move the positions once impact zones formed (fresh arrays, taped):
+        members (``zone_p`` / ``zone_b`` device int flags) take their zone's velocities
+        ``zone_v*`` (:meth:`zone_velocities`), the others keep ``moving_*`` (their push)."""
+        p_count = moving_p.shape[0] if moving_p is not None else 0
+        b_count = moving_b.shape[0] if moving_b is not None else 0
+        out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
+        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
+        wp.launch(K.zone_select_kernel, dim=p_count + b_count,
+                  inputs=[p_count, self.frozen(zone_p, p_count), self.frozen(zone_b, b_count),
+                          self._or(moving_p, self.empty_vec), self._or(moving_b, self.empty_twist),
+                          self._or(zone_vp, self.empty_vec), self._or(zone_vb, self.empty_twist)],
+                  outputs=[out_p, out_b], device=self.device)
+        return (out_p if p_count else moving_p), (out_b if b_count else moving_b)
 
     def zone_velocities(self, vp, vb, particle_zone, body_zone, n_zones: int, particle_q, body_q, body_mass,
                         body_inertia):

@@ -9,16 +9,22 @@ model's components decide which groups exist and which may touch (cloth with its
 
 1. **Proximity** (resting and sliding contact, after Bridson et al. 2002): vertex-face and
    edge-edge pairs closer than the separation ``delta`` at the start of the substep become
-   contacts at ``t* = 0`` with the normal of their exact closest points. Their impulses keep the
-   normal relative velocity at least ``-e v_n-`` (restitution ``e``) and at least
-   ``SEPARATION_RATE (delta - d) / h``, so resting primitives neither approach nor get pushed
-   apart faster than a tenth of the missing gap per substep.
+   contacts at ``t* = 0`` with the normal of their exact closest points (a vertex over a face,
+   or over its coplanar neighbours, takes the face's normal; edges between coplanar faces of a
+   rigid or static surface are no features at all, :func:`collision.mesh.flat_edges`; a
+   touching pair whose closest points give no direction joins no set). Their impulses keep the
+   normal relative velocity at least ``-e v_n`` (restitution ``e``, when they approach faster
+   than the separation speed; ``v_n`` at the start) and restore ``SEPARATION_RATE`` of the
+   missing gap ``delta - d`` per substep: as a velocity target in the Gauss-Seidel response, as
+   a push of the positions alone in the replayed one (no velocity outlives it: an inelastic
+   impact does not rebound).
 2. **Continuous collision detection**: the planned motion (linear per vertex from the start to
    the planned end positions) goes through :class:`collision.broad_phase.BroadPhase` and the
    vertex-face / edge-edge narrow phase of :mod:`kernels.ccd` at zero thickness (the coplanarity
    cubic and its robust roots: the exact first contact time ``t*``). Every hit whose primitives
    still approach at ``t*`` joins the contact set, with the normal at ``t*`` oriented by the
-   start offset and the target ``max(-e v_n-, SEPARATION_RATE delta / h)``.
+   start offset, the target ``-e v_n`` (``v_n`` the velocity at ``t*``: the start velocity plus
+   the forces' change up to ``t*``) and the separation ``SEPARATION_RATE delta`` restored as in 1.
 3. **Impulses** for the whole contact set: projected Gauss-Seidel sweeps in a Warp kernel
    (:func:`kernels.contact.solve_contacts_kernel`, sequential, deterministic), accumulated normal
    impulses clamped to ``>= 0`` and Coulomb friction clamped to the cone ``|j_t| <= mu j_n``. Cloth impulses split by the barycentric / segment weights and the
@@ -52,7 +58,11 @@ reuses its buffers, so stepping allocates no Warp array, and its cost is measure
 ``benchmarks/sim.py``), and with ``differentiable=True`` the replayed one (design.md
 "Differentiating collision response: decide, then replay"): the same decisions off the tape,
 then ``t*`` through the mollified roots, the exact impulse solve, the time-of-impact integration
-and the impact zones' rigid motion as taped Warp launches (:mod:`collision.replay`).
+and the impact zones' rigid motion as taped Warp launches (:mod:`collision.replay`). Its
+friction is exact for the two common regimes: every contact sticking (one joint solve of the
+normal and tangential impulses: a box stays put on a slope steeper than it would be without
+friction) or every contact sliding (Coulomb's ``mu j_n`` against the slip in the same solve as
+``j_n``); mixed sets take each contact's stopping impulse, shared.
 """
 
 from __future__ import annotations
@@ -103,7 +113,9 @@ fraction of the separation speed ``SEPARATION_RATE delta / h``."""
 
 TOUCHING_RELATIVE = 1e-6
 """Proximity pairs closer than this fraction of the separation count as touching: their offset
-direction is rounding noise, so the normal comes from the primitives' geometry instead."""
+direction is rounding noise, so the normal comes from the primitives' geometry instead (a
+face's outward normal, crossing edges' cross product), or, where the geometry gives none (a
+vertex on a face's border, edges touching at an end), the pair joins no contact set."""
 
 APPROACH_EPS = 1e-12
 """A CCD hit counts as approaching when its normal relative velocity is below ``-APPROACH_EPS``
@@ -371,7 +383,7 @@ class ImpulseCollisionHandler:
         self.shape_body = mesh.shape_body
         self.static_vertices = mesh.static_vertices
         self.n_vertices = mesh.vertex_count
-        self.faces, self.edges = mesh.faces, mesh.edges
+        self.faces, self.edges = mesh.faces, mesh.feature_edges
         # broad-phase groups: the particles (self-collision only with "self_collision"), each
         # body (never with itself), the static meshes (never with each other)
         groups, self_collision, static = [], [], []
@@ -441,7 +453,7 @@ class ImpulseCollisionHandler:
             m.particle_inv_mass if self.n_particles else None,
             m.body_inv_mass if self.n_bodies else None,
             m.body_inv_inertia if self.n_bodies else None,
-            self.planes, m.friction, m.restitution, m.device,
+            self.planes, m.friction, m.restitution, m.device, mesh.flat_edges,
         )
         # the Gauss-Seidel path's device decisions (kernels.contact_set): the contact set, one
         # detection pass's hits, the plane tests' vertices, distances and hits, the counters
@@ -594,6 +606,11 @@ class ImpulseCollisionHandler:
         if self.broad_phase is None:
             return None
         self._check_states(state_in, state_pred)
+        R = self._replay
+        # the start velocities: an impact reflects the velocity at its time, not the forces'
+        # change after it (contact_geometry_kernel)
+        self._v_start = (state_in.particle_qd if self.n_particles else R.empty_vec,
+                         state_in.body_qd if self.n_bodies else R.empty_twist)
         # the buffers of earlier calls are about to be reused: the records still kept (saved
         # statistics) take host copies of what they read
         for record in list(self._records):
@@ -725,9 +742,10 @@ class ImpulseCollisionHandler:
         tp, tb = times if times is not None else (self._inf_time_p, self._inf_time_b)
         self._launches.launch("hit_geometry", contact_geometry_kernel, H.count, [
             x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
-            H.plane, R.planes, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
+            H.plane, R.planes, *self._v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
-            float(self.max_derivative), 0, H.toi, H.weights, H.normals, H.targets])
+            float(self.max_derivative), 0, R.flat_keys, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
+            self._staging.empty("hit_push", max(H.count, 1), wp.float64)])
 
     def _add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
         """Grows the contact set by :attr:`_hits` (``all_new``: every hit, into the empty set;
@@ -736,7 +754,7 @@ class ImpulseCollisionHandler:
         the hits' own) and, with ``merge`` ((hit, keep toi, keep target) int32 arrays of the
         grown set's rows), the decisions the taped replay's merge repeats."""
         cs, H = self._contacts, self._hits
-        toi, w, n, target = geometry if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
+        toi, w, n, target = geometry[:4] if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
         cs.reserve(cs.count + (H.count if all_new else approaching))
         record = merge is not None
         merge = merge if record else (self._no_merge,) * 3
@@ -769,8 +787,9 @@ class ImpulseCollisionHandler:
         device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
         closest points are nearer than ``delta`` [m], then movable vertices nearer than ``delta``
         to a plane, with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
-        direction, or for touching pairs the face / edges' normal turned against the relative
-        motion; target ``max(-e min(v_n, 0), rate (delta - d) / h)`` with the velocities ``v-``).
+        direction, or the face's normal over a face, or for touching pairs as
+        :data:`TOUCHING_RELATIVE` says; target and push as
+        :func:`kernels.contact.contact_geometry_kernel` says).
 
         The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
         ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
@@ -835,6 +854,10 @@ class ImpulseCollisionHandler:
         self._launches.launch("approach", approach_kernel, H.count, [
             x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
             self._contacts.toi, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self._sep_speed),
+            # a contact at the very end leaves once it no longer approaches (the replay pushes
+            # the separation at the position level) or, in the Gauss-Seidel response, once it
+            # leaves at its separation speed
+            0.0 if self.differentiable else float(self._sep_speed),
             float(APPROACH_EPS), float(END_OF_SUBSTEP), self._approach_counter, H.approaching])
         return int(host(self._approach_counter)[0])
 
@@ -958,7 +981,8 @@ class ImpulseCollisionHandler:
         cs.clear()
         zones = None
         zone_flags = (self._no_zone_p, self._no_zone_b)
-        st = {"dev": None, "vp": vm_p, "vb": vm_b}  # the taped contact geometry and velocities
+        # the taped contact geometry, the velocities and those that move the positions
+        st = {"dev": None, "vp": vm_p, "vb": vm_b, "xp": vm_p, "xb": vm_b}
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
         launch = self._launches.launch
 
@@ -987,14 +1011,15 @@ class ImpulseCollisionHandler:
         def plan():
             po, bo, tp, tb = owners()
             toi = st["dev"][0] if st["dev"] is not None else R.take(1, wp.float64, grad=False)
-            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], bq0_w,
-                                   state_pred.body_q if B else None, vm_b, st["vb"], po, bo, toi, h)
+            # positions move with the velocities plus the push (the separation restored)
+            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["xp"], bq0_w,
+                                   state_pred.body_q if B else None, vm_b, st["xb"], po, bo, toi, h)
             return X1p, BQ1, tp, tb
 
         def geometry(X1, tp, tb):
             H = self._hits
             rows = {"vertices": H.vertices, "kind": H.kind, "source": H.source, "detected": H.detected, "plane": H.plane}
-            return R.geometry(X0, X1, L0, rows, H.count, vm_p, st["vp"], vm_b, st["vb"], tp, tb, h, delta,
+            return R.geometry(X0, X1, L0, rows, H.count, *self._v_start, vm_p, st["vp"], vm_b, st["vb"], tp, tb, h, delta,
                               SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative,
                               bool(self.ccd_options))  # a generated narrow phase numbers roots its own way
 
@@ -1003,7 +1028,8 @@ class ImpulseCollisionHandler:
             merge = (take(c, wp.int32, zero=False, grad=False), take(c, wp.int32, zero=False, grad=False),
                      take(c, wp.int32, zero=False, grad=False))
             self._add_hits(all_new, approaching, out, merge)
-            st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2]), *merge, cs.count)
+            if cs.count:  # touching pairs with no defined normal join no set: it may stay empty
+                st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2], out[4]), *merge, cs.count)
 
         def exact():
             # decide: the active set from projected Gauss-Seidel on top of the current velocities,
@@ -1027,9 +1053,10 @@ class ImpulseCollisionHandler:
                 # the first trial is recorded (usually it is the final one); repair trials stay off
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    vp_d, vb_d, normal = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
+                    vp_d, vb_d, normal, moving = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b,
+                                                         share)
                 if iteration == 0:
-                    recorded = (vp_d, vb_d, normal)
+                    recorded = (vp_d, vb_d, normal, moving)
                 repaired = take(C, wp.int32, zero=False, grad=False)
                 launch("r_active_update", active_set_update_kernel, 1, [
                     C, cs.vertices, cs.weights, cs.normals, cs.targets, mobile, active, normal, R.vertex_type,
@@ -1045,15 +1072,16 @@ class ImpulseCollisionHandler:
             if tape is not None and active is not taped and self._flags_differ(taped, active, C):
                 # the replay of the final active set, recorded
                 share = self._friction_share(active) if mu > 0 else None
-                vp_d, vb_d, normal = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
+                vp_d, vb_d, normal, moving = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b,
+                                                     share)
             elif tape is not None:
                 # the repairs came back to the first trial's set: its recorded solve (the same
                 # values) is the one the tape continues from, not the last, unrecorded trial
-                vp_d, vb_d, normal = recorded
+                vp_d, vb_d, normal, moving = recorded
             if P:
-                st["vp"] = vp_d
+                st["vp"], st["xp"] = vp_d, moving[0]
             if B:
-                st["vb"] = vb_d
+                st["vb"], st["xb"] = vb_d, moving[1]
             launch("r_set_impulses", set_impulses_kernel, C, [
                 active, normal, cs.normals, cs.normal_impulse, cs.friction_impulse])
 
@@ -1066,7 +1094,8 @@ class ImpulseCollisionHandler:
             found = self._proximity_hits(x0, x1_pred, X0, delta)
         if found:
             add(geometry(X0, self._inf_time_p, self._inf_time_b), True, 0)  # no contact time yet
-            exact()
+            if cs.count:
+                exact()
 
         # 2-5. CCD rounds on the planned motion; the result is the last round's plan: every exit
         # follows a plan with nothing changed after it
@@ -1097,6 +1126,7 @@ class ImpulseCollisionHandler:
                                                        bq0_w, m.body_mass if B else None,
                                                        m.body_inertia if B else None)
                 zone_flags = self._zone_flags(zones)
+                st["xp"], st["xb"] = R.zone_moving(st["xp"], st["xb"], *zone_flags, st["vp"], st["vb"])
                 continue
             self.ccd_events += approaching
             add(out, False, approaching)

@@ -535,6 +535,46 @@ def pair_scale(y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.flo
     return s
 
 
+@wp.func
+def is_flat_edge(a: int, b: int, flat_keys: wp.array(dtype=wp.int64), base: wp.int64) -> bool:
+    """Whether the edge ``(a, b)`` is one of the sorted ``flat_keys`` (``lo * base + hi``): an
+    edge between two coplanar faces of a rigid or static surface (:func:`collision.mesh.flat_edges`)."""
+    key = wp.int64(wp.min(a, b)) * base + wp.int64(wp.max(a, b))
+    lo = int(0)
+    hi = flat_keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if flat_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo < flat_keys.shape[0] and flat_keys[lo] == key
+
+
+@wp.func
+def crossed(side: wp.float64, on_edge: bool) -> bool:
+    """Whether a barycentric sign ``side`` puts a point beyond its edge (``on_edge``: also on it)."""
+    return side < wp.float64(0.0) or (on_edge and side == wp.float64(0.0))
+
+
+@wp.func
+def beside_flat_region(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, q: wp.vec4i,
+                       flat_keys: wp.array(dtype=wp.int64), base: wp.int64, on_edge: bool) -> bool:
+    """Whether the projection of ``p`` on the plane of the triangle ``abc`` (vertices
+    ``q[1], q[2], q[3]``) lies inside it or beyond flat edges only (the signs of its unnormalised
+    barycentric coordinates; an edge is crossed when the opposite vertex's is negative, or with
+    ``on_edge`` zero too)."""
+    n = wp.cross(b - a, c - a)
+    inside = True
+    if crossed(wp.dot(wp.cross(b - p, c - p), n), on_edge):
+        inside = inside and is_flat_edge(q[2], q[3], flat_keys, base)
+    if crossed(wp.dot(wp.cross(c - p, a - p), n), on_edge):
+        inside = inside and is_flat_edge(q[3], q[1], flat_keys, base)
+    if crossed(wp.dot(wp.cross(a - p, b - p), n), on_edge):
+        inside = inside and is_flat_edge(q[1], q[2], flat_keys, base)
+    return inside
+
+
 @wp.kernel
 def contact_geometry_kernel(
     x0: wp.array(dtype=wp.vec3d),
@@ -548,6 +588,8 @@ def contact_geometry_kernel(
     detected: wp.array(dtype=wp.float64),
     plane_ids: wp.array(dtype=wp.int32),
     planes: wp.array(dtype=wp.vec4d),
+    particle_qd_start: wp.array(dtype=wp.vec3d),
+    body_qd_start: wp.array(dtype=wp.spatial_vectord),
     particle_qd_minus: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3d),
     body_qd_minus: wp.array(dtype=wp.spatial_vectord),
@@ -561,10 +603,14 @@ def contact_geometry_kernel(
     touching_relative: wp.float64,
     max_derivative: wp.float64,
     nearest_slot: wp.int32,
+    flat_keys: wp.array(dtype=wp.int64),
+    flat_key_base: wp.int64,
+    split_push: wp.int32,
     toi: wp.array(dtype=wp.float64),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
     targets: wp.array(dtype=wp.float64),
+    pushes: wp.array(dtype=wp.float64),
 ):
     """Time of impact, weights, normal and target normal velocity of contact ``tid`` on the
     linear paths ``x0 -> x1`` of the substep ``h`` (differentiable; the branches are the
@@ -577,11 +623,19 @@ def contact_geometry_kernel(
       narrow phase of another precision numbers its roots its own way); the linear
       crossing time for vertex-plane hits (source 6); otherwise the detected fraction.
     * weights and normal at ``t*`` (:func:`pair_weights`; the face / edge-edge normal oriented
-      by the start offset, or, for proximity pairs, the offset direction; touching pairs take
-      the geometric normal turned against the relative motion).
-    * target: proximity ``max(-e min(v_n, 0), rate (delta - d) / h)``; CCD
-      ``max(-e v_n, rate delta / h)`` with vertex velocities ``v-`` before their owner's
-      earlier contact time and the current ones after.
+      by the start offset, or, for proximity pairs, the offset direction, the face's normal for
+      a vertex over the face or its flat neighbours (``flat_keys``); touching pairs: the face's
+      outward normal, crossing edges' cross product oriented by their lever arms, else a zero
+      normal, which keeps the pair out of the contact set).
+    * target: proximity ``max(-e v_n, rate (delta - d) / h)`` when it approaches faster than
+      the separation speed ``rate delta / h`` (else ``rate (delta - d) / h``: resting contact); CCD
+      ``max(-e v_n, rate delta / h)``, ``v_n`` the normal velocity at ``t*``: each vertex's
+      start velocity plus the forces' change up to ``t*`` (``v_start + (t*/h)(v- - v_start)``;
+      the start velocity for proximity pairs) before its owner's earlier contact time, the
+      current velocity after it. With ``split_push`` the target is the
+      restitution's part alone (at least 0), and the separation's part, the push
+      ``rate (delta - d) / h`` (proximity) or ``rate delta / h`` (CCD), goes to ``pushes``
+      for a solve of its own that moves positions only (:func:`push_rhs_kernel`).
     """
     c = wp.tid()
     zero = wp.float64(0.0)
@@ -626,48 +680,97 @@ def contact_geometry_kernel(
         n = wp.vec3d(p[0], p[1], p[2])
         distance = wp.dot(n, a0) - p[3]
 
-    # velocities: v- for the proximity pass; at t* for CCD hits (v- before the owner's t*)
+    # velocities (the normal's orientation): v- for the proximity pass; at t* for CCD hits (v-
+    # before the owner's t*).
+    # The velocity the impact reflects is the one at t*: the start velocity plus the forces'
+    # change up to t* (v_start + (t*/h)(v- - v_start)); the change after t* is not reflected,
+    # so a resting contact does not bounce on the gravity of each substep
     vrel = wp.vec3d(zero, zero, zero)
+    vrel_at = wp.vec3d(zero, zero, zero)
     for k in range(4):
         vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_minus, body_qd_minus)
+        v0k = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_start, body_qd_start)
+        at_k = v0k + frac * (vk - v0k)
         if src != TIME_START:
             if frac * h >= vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time):
                 vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd, body_qd)
+                at_k = vk
         vrel = vrel + w[k] * vk
+        vrel_at = vrel_at + w[k] * at_k
 
     if kind != PAIR_VERTEX_PLANE:
         scale = pair_scale(y0, y1, y2, y3)
         geo = pair_geometric_normal(kind, y0, y1, y2, y3)
         geo_ok = wp.length(geo) > wp.float64(1.0e-12) * scale * scale
         if src == TIME_START:
-            if distance > touching_relative * separation:
+            touching = distance <= touching_relative * separation
+            over_face = False
+            if kind == PAIR_VERTEX_FACE and geo_ok:
+                # a vertex touching a face's border edge may lie in the face's plane (two
+                # boxes flush side by side): only its inside gives the face's normal then
+                over_face = beside_flat_region(y0, y1, y2, y3, q, flat_keys, flat_key_base, touching)
+            if over_face:
+                # the vertex lies over the face or over flat neighbours of it: the face's normal
+                # (the offset to a flat edge's closest point tilts with the vertex's sideways
+                # position, a torque out of nothing)
+                n = wp.normalize(geo)
+                if touching:
+                    # a rigid or static face is wound outwards, and the vertex lies outside
+                    # whichever way it moves; a cloth face has no outside: against the motion
+                    if vertex_type[q[1]] == VERTEX_PARTICLE and wp.dot(n, vrel) > zero:
+                        n = -n
+                elif wp.dot(n, offset) < zero:
+                    n = -n
+            elif not touching:
                 n = offset / distance
             else:
-                # touching: the offset has no reliable direction
-                speed = wp.length(vrel)
-                if geo_ok:
+                # touching beside the face, or edges touching: the offset has no direction.
+                # Crossing edges touching inside both take their cross product; a vertex
+                # beside the face, or edges touching at an end, touch a feature that another
+                # pair holds with a defined normal (the face the vertex lies on, the end
+                # vertex's faces): a zero normal keeps the pair out of the contact set
+                n = wp.vec3d(zero, zero, zero)
+                if kind == PAIR_EDGE_EDGE and geo_ok and w[1] > zero and w[1] < one and w[3] < zero and w[3] > -one:
                     n = wp.normalize(geo)
-                elif speed > zero:
-                    n = -vrel / speed
-                if wp.dot(n, vrel) > zero:
-                    n = -n
+                    # from B to A: a rigid edge's lever arm points out of its body (convex
+                    # surroundings), towards the other side; else against the motion
+                    outward = (w[0] * lever[q[0]] + w[1] * lever[q[1]]) + (w[2] * lever[q[2]] + w[3] * lever[q[3]])
+                    side = -wp.dot(n, outward)
+                    if side < zero or (side == zero and wp.dot(n, vrel) > zero):
+                        n = -n
         else:
             if geo_ok:
                 n = wp.normalize(geo)
-            elif wp.length(start_offset) > zero:
+            elif wp.length(start_offset) > touching_relative * separation:
                 n = wp.normalize(start_offset)
+            else:
+                # parallel edges touching at the start (two faces flush against each other):
+                # no direction is defined, and the faces' vertex-face pairs hold the contact;
+                # a zero normal never approaches, so the hit joins no contact set
+                n = wp.vec3d(zero, zero, zero)
             if wp.dot(n, start_offset) < zero:
                 n = -n
-    vn = wp.dot(vrel, n)
+    vn = wp.dot(vrel_at, n)
     target = zero
+    push = separation_rate * separation / h
     if src == TIME_START:
-        target = wp.max(-restitution * wp.min(vn, zero), separation_rate * (separation - distance) / h)
+        # a pair already in contact bounces only when it approaches faster than the
+        # separation speed: slower approach is resting contact (a body settling, or kicked by
+        # rounding), whose bounce would be a jitter and a kink of the motion at rest
+        if -vn > separation_rate * separation / h:
+            target = -restitution * vn
+        push = separation_rate * (separation - distance) / h
     else:
-        target = wp.max(-restitution * vn, separation_rate * separation / h)
+        target = -restitution * vn
+    if split_push == 0:
+        target = wp.max(target, push)
+    else:
+        target = wp.max(target, zero)
     toi[c] = frac * h
     weights[c] = w
     normals[c] = n
     targets[c] = target
+    pushes[c] = push
 
 
 @wp.kernel
@@ -680,16 +783,22 @@ def merge_contacts_kernel(
     new_targets: wp.array(dtype=wp.float64),
     new_weights: wp.array(dtype=wp.vec4d),
     new_normals: wp.array(dtype=wp.vec3d),
+    old_pushes: wp.array(dtype=wp.float64),
+    new_pushes: wp.array(dtype=wp.float64),
     new_index: wp.array(dtype=wp.int32),
     keep_old_toi: wp.array(dtype=wp.int32),
     keep_old_target: wp.array(dtype=wp.int32),
+    old_count: int,
     toi: wp.array(dtype=wp.float64),
     targets: wp.array(dtype=wp.float64),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
+    pushes: wp.array(dtype=wp.float64),
 ):
     """Contact ``tid`` of the grown set: the old row (``new_index < 0``) or this round's
-    detection (its weights and normal; the earlier time and the larger target, as decided)."""
+    detection (its weights and normal; the earlier time and the larger target, as decided; the
+    larger push: a CCD hit on a proximity row restores the whole separation). ``old_count``: the
+    rows the set had before."""
     c = wp.tid()
     k = new_index[c]
     if k < 0:
@@ -697,7 +806,12 @@ def merge_contacts_kernel(
         targets[c] = old_targets[c]
         weights[c] = old_weights[c]
         normals[c] = old_normals[c]
+        pushes[c] = old_pushes[c]
         return
+    if c < old_count:
+        pushes[c] = wp.max(old_pushes[c], new_pushes[k])
+    else:
+        pushes[c] = new_pushes[k]
     weights[c] = new_weights[k]
     normals[c] = new_normals[k]
     if keep_old_toi[c] != 0:
@@ -908,6 +1022,57 @@ def contact_rhs_kernel(
 
 
 @wp.kernel
+def push_rhs_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    pushes: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    rhs: wp.array(dtype=wp.float64),
+):
+    """Right-hand side of push equation ``tid``: the part of the contact's push (the separation
+    speed, :func:`contact_geometry_kernel`) that its normal velocity after the impulses does not
+    already give, ``max(push - v_n, 0)``. The push moves positions only: it restores the
+    separation without a velocity that outlives the substep (an inelastic impact rebounds
+    with none)."""
+    r = wp.tid()
+    c = unknown_contact[r]
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    rhs[r] = wp.max(pushes[c] - wp.dot(normals[c], vrel), wp.float64(0.0))
+
+
+@wp.kernel(enable_backward=False)
+def push_active_kernel(
+    active: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    pushes: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    flags: wp.array(dtype=wp.int32),
+):
+    """The push's unknowns (a decision): the active contacts, and those whose normal velocity
+    after the impulses is below their push (a primitive resting inside the separation, which
+    needs no impulse to stop but must still be moved out)."""
+    c = wp.tid()
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    short = pushes[c] > wp.dot(normals[c], vrel)
+    if active[c] != 0 or short:
+        flags[c] = 1
+    else:
+        flags[c] = 0
+
+
+@wp.kernel
 def dense_solve_kernel(
     matrix: wp.array2d(dtype=wp.float64),
     rhs: wp.array(dtype=wp.float64),
@@ -973,6 +1138,277 @@ def solve_adjoint_kernel(
     matrix_grad[r, u] = matrix_grad[r, u] - adjoint[r] * solution[u]
     if u == 0:
         rhs_grad[r] = rhs_grad[r] + adjoint[r]
+
+
+@wp.func
+def contact_axis(n: wp.vec3d, axis: int) -> wp.vec3d:
+    """Axis ``axis`` of a contact's frame: the normal ``n`` (0) and the tangents
+    :func:`unit_perpendicular` (1) and ``n x t1`` (2)."""
+    if axis == 0:
+        return n
+    t1 = unit_perpendicular(n)
+    if axis == 1:
+        return t1
+    return wp.cross(n, t1)
+
+
+@wp.kernel
+def sticking_delassus_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    regularization: wp.float64,
+    tangent_weight: wp.array(dtype=wp.float64),
+    matrix: wp.array2d(dtype=wp.float64),
+):
+    """Entry (r, u) of the sticking system: three unknowns per active contact (the impulse along
+    its normal and its two tangents, :func:`contact_axis`), ``e_r . K_cd e_u`` with the diagonal
+    scaled by ``1 + regularization`` as in :func:`delassus_kernel`, the tangential ones by
+    ``1 + regularization tangent_weight[c]``. Redundant contacts (a face on four corners) leave
+    the split of the friction among them free; the regularisation picks the split of least
+    weighted norm, and weights inverse to the normal loads (:func:`tangent_weights_kernel`)
+    make it the split in proportion to them, which stays in every contact's cone when the
+    total friction stays in the total cone."""
+    r, u = wp.tid()
+    c = unknown_contact[r // 3]
+    d = unknown_contact[u // 3]
+    resp = contact_response(
+        c, d, contact_axis(normals[d], u % 3), pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
+        rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
+    )
+    value = wp.dot(contact_axis(normals[c], r % 3), resp)
+    if r == u:
+        scale = regularization
+        if r % 3 != 0:
+            scale = regularization * tangent_weight[c]
+        value = value * (wp.float64(1.0) + scale)
+    matrix[r, u] = value
+
+
+@wp.kernel
+def slip_directions_kernel(
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    directions: wp.array(dtype=wp.vec3d),
+):
+    """Unit slip direction ``v_t / |v_t|`` of contact ``tid`` (zero where it does not slip)."""
+    c = wp.tid()
+    n = normals[c]
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    vt = vrel - wp.dot(vrel, n) * n
+    length = wp.length(vt)
+    zero = wp.float64(0.0)
+    if length > zero:
+        directions[c] = vt / length
+    else:
+        directions[c] = wp.vec3d(zero, zero, zero)
+
+
+@wp.kernel
+def sliding_delassus_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    directions: wp.array(dtype=wp.vec3d),
+    friction: wp.float64,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+    regularization: wp.float64,
+    matrix: wp.array2d(dtype=wp.float64),
+):
+    """Entry (r, u) of the sliding system: the normal relative velocity of active contact ``r``
+    per unit normal impulse at active contact ``u`` that carries its Coulomb friction along,
+    the impulse ``n - mu s`` (``s`` its slip direction): ``n_r . K_ru (n_u - mu s_u)``; the
+    diagonal scaled as in :func:`delassus_kernel`."""
+    r, u = wp.tid()
+    c = unknown_contact[r]
+    d = unknown_contact[u]
+    resp = contact_response(
+        c, d, normals[d] - friction * directions[d], pairs, weights, vertex_type, vertex_owner, side_body,
+        side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
+    )
+    value = wp.dot(normals[c], resp)
+    if r == u:
+        value = value * (wp.float64(1.0) + regularization)
+    matrix[r, u] = value
+
+
+@wp.kernel
+def sliding_impulses_kernel(
+    contact_unknown: wp.array(dtype=wp.int32),
+    solution: wp.array(dtype=wp.float64),
+    normals: wp.array(dtype=wp.vec3d),
+    directions: wp.array(dtype=wp.vec3d),
+    friction: wp.float64,
+    impulses: wp.array(dtype=wp.vec3d),
+):
+    """Impulse ``j_n (n - mu s)`` of contact ``tid`` from the sliding system's solution."""
+    c = wp.tid()
+    u = contact_unknown[c]
+    zero = wp.float64(0.0)
+    j = wp.vec3d(zero, zero, zero)
+    if u >= 0:
+        j = solution[u] * (normals[c] - friction * directions[c])
+    impulses[c] = j
+
+
+@wp.kernel(enable_backward=False)
+def slip_reversed_kernel(
+    impulses: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    directions: wp.array(dtype=wp.vec3d),
+    contact_unknown: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    count: wp.array(dtype=wp.int32),
+):
+    """Counts the active contacts of a sliding solve that pull (``j . n < 0``), that did not slip
+    (no direction: no friction in the solve) or whose slip after it no longer runs along the
+    direction friction opposed (it stopped or turned back: the contact sticks); a decision."""
+    c = wp.tid()
+    if contact_unknown[c] < 0:
+        return
+    n = normals[c]
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    vt = vrel - wp.dot(vrel, n) * n
+    s = directions[c]
+    if wp.dot(impulses[c], n) < wp.float64(0.0) or wp.dot(vt, s) < wp.float64(0.0) or wp.length_sq(s) == wp.float64(0.0):
+        wp.atomic_add(count, 0, 1)
+
+
+TANGENT_WEIGHT_MAX = wp.constant(wp.float64(100.0))
+
+
+@wp.kernel(enable_backward=False)
+def tangent_weights_kernel(
+    count: int,
+    contact_unknown: wp.array(dtype=wp.int32),
+    normal_impulses: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    weights_out: wp.array(dtype=wp.float64),
+):
+    """The sticking system's tangential regularisation weights (launched with ``dim=1``): the
+    largest active normal impulse over each contact's, at most ``TANGENT_WEIGHT_MAX`` (a
+    decision: it picks the split of the friction among redundant contacts, not the motion)."""
+    largest = wp.float64(0.0)
+    for c in range(count):
+        if contact_unknown[c] >= 0:
+            largest = wp.max(largest, wp.dot(normal_impulses[c], normals[c]))
+    for c in range(count):
+        w = TANGENT_WEIGHT_MAX
+        jn = wp.dot(normal_impulses[c], normals[c])
+        if jn * TANGENT_WEIGHT_MAX > largest:
+            w = largest / jn
+        weights_out[c] = w
+
+
+@wp.kernel
+def sticking_rhs_kernel(
+    unknown_contact: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    normals: wp.array(dtype=wp.vec3d),
+    targets: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    rhs: wp.array(dtype=wp.float64),
+):
+    """Right-hand side of sticking equation ``tid``: the target (the normal one, 0 along the
+    tangents) minus the current relative velocity along the axis."""
+    r = wp.tid()
+    c = unknown_contact[r // 3]
+    axis = r % 3
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    target = wp.float64(0.0)
+    if axis == 0:
+        target = targets[c]
+    rhs[r] = target - wp.dot(contact_axis(normals[c], axis), vrel)
+
+
+@wp.kernel
+def sticking_impulses_kernel(
+    contact_unknown: wp.array(dtype=wp.int32),
+    solution: wp.array(dtype=wp.float64),
+    normals: wp.array(dtype=wp.vec3d),
+    impulses: wp.array(dtype=wp.vec3d),
+):
+    """Impulse of contact ``tid`` from the sticking system's solution (zero when inactive)."""
+    c = wp.tid()
+    u = contact_unknown[c]
+    zero = wp.float64(0.0)
+    j = wp.vec3d(zero, zero, zero)
+    if u >= 0:
+        n = normals[c]
+        j = solution[3 * u] * n + solution[3 * u + 1] * contact_axis(n, 1) + solution[3 * u + 2] * contact_axis(n, 2)
+    impulses[c] = j
+
+
+@wp.kernel
+def normal_part_kernel(impulses: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
+                       out: wp.array(dtype=wp.vec3d)):
+    """The normal part ``(j . n) n`` of each contact's impulse."""
+    c = wp.tid()
+    n = normals[c]
+    out[c] = wp.dot(impulses[c], n) * n
+
+
+@wp.kernel(enable_backward=False)
+def outside_cone_kernel(
+    impulses: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    contact_unknown: wp.array(dtype=wp.int32),
+    friction: wp.float64,
+    count: wp.array(dtype=wp.int32),
+):
+    """Counts the active contacts whose impulse pulls (``j . n < 0``) or leaves the friction
+    cone (``|j_t| > mu j . n``): a decision (whether every contact can stick)."""
+    c = wp.tid()
+    if contact_unknown[c] < 0:
+        return
+    j = impulses[c]
+    n = normals[c]
+    jn = wp.dot(j, n)
+    if jn < wp.float64(0.0) or wp.length(j - jn * n) > friction * jn:
+        wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel
+def add_vectors_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    """``out = a + b`` (the normal impulses of a solve and of its refinement)."""
+    i = wp.tid()
+    out[i] = a[i] + b[i]
 
 
 @wp.kernel
@@ -1268,6 +1704,35 @@ def planned_substep_kernel(
 # ---------------------------------------------------------------------------- impact zones
 # A particle's / body's zone: 0.. a free zone, ZONE_NONE not in a zone, ZONE_WORLD in a zone
 # that touches a static vertex or a pinned particle (at rest).
+@wp.kernel
+def zone_select_kernel(
+    particle_count: int,
+    zone_p: wp.array(dtype=wp.int32),
+    zone_b: wp.array(dtype=wp.int32),
+    moving_p: wp.array(dtype=wp.vec3d),
+    moving_b: wp.array(dtype=wp.spatial_vectord),
+    zone_vp: wp.array(dtype=wp.vec3d),
+    zone_vb: wp.array(dtype=wp.spatial_vectord),
+    out_p: wp.array(dtype=wp.vec3d),
+    out_b: wp.array(dtype=wp.spatial_vectord),
+):
+    """The velocities that move the positions after the fail-safe (the first ``particle_count``
+    threads particles, then bodies): an impact zone's member moves with its zone's rigid motion
+    ``zone_v*``, anything else with its own, push included (``moving_*``)."""
+    i = wp.tid()
+    if i < particle_count:
+        if zone_p[i] != 0:
+            out_p[i] = zone_vp[i]
+        else:
+            out_p[i] = moving_p[i]
+    else:
+        b = i - particle_count
+        if zone_b[b] != 0:
+            out_b[b] = zone_vb[b]
+        else:
+            out_b[b] = moving_b[b]
+
+
 ZONE_NONE = wp.constant(-1)
 ZONE_WORLD = wp.constant(-2)
 # rank cut-off of a zone's inertia (relative to its trace): looser than numpy's pinv (1e-15),

@@ -289,6 +289,7 @@ def approach_kernel(
     body_time: wp.array(dtype=wp.float64),
     h: wp.float64,
     separation_speed: wp.float64,
+    leaving_speed: wp.float64,
     approach_eps: wp.float64,
     end_of_substep: wp.float64,
     counter: wp.array(dtype=wp.int32),
@@ -301,8 +302,10 @@ def approach_kernel(
     ``x0 -> x1`` that the CCD checked, is below ``-approach_eps`` times the largest vertex
     velocity component plus the separation speed (rounding of an exactly separating or
     tangential pair stays inside). A hit whose pair is in the contact set (``row``) at the very
-    end of the substep, detected there again, and leaving faster than the separation speed is
-    judged by its velocities alone: its path ends on the contact instead of passing through."""
+    end of the substep, detected there again, and leaving there at ``leaving_speed`` at least
+    (the replayed response's 0: an inelastic impact's normal velocity is 0, and its push has no
+    time left) is judged by its velocities alone: its path ends on the contact instead of
+    passing through."""
     i = wp.tid()
     zero = wp.float64(0.0)
     q = vertices[i]
@@ -326,8 +329,9 @@ def approach_kernel(
     r = row[i]
     if r >= 0:
         end = h * (wp.float64(1.0) - end_of_substep)
-        if contact_toi[r] >= end and ts >= end and vn > separation_speed:
-            leaving = 1
+        if contact_toi[r] >= end and ts >= end:
+            if (leaving_speed > zero and vn > leaving_speed) or (leaving_speed <= zero and vn >= -eps):
+                leaving = 1
     result = 0
     if vn < -eps:
         result = 1
@@ -369,8 +373,8 @@ def add_contacts_kernel(
     keep_toi: wp.array(dtype=wp.int32),
     keep_target: wp.array(dtype=wp.int32),
 ):
-    """Grows the contact set (``base`` rows) by the approaching hits (every hit with
-    ``all_new``: the proximity pass into the empty set), launched with ``dim=1`` so that new
+    """Grows the contact set (``base`` rows) by the approaching hits (every hit with a normal
+    with ``all_new``: the proximity pass into the empty set), launched with ``dim=1`` so that new
     pairs are appended in the hits' order on every device. A hit whose pair is in the set
     (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
     the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
@@ -391,6 +395,8 @@ def add_contacts_kernel(
     for h in range(hit_count):
         if all_new == 0 and approaching[h] == 0:
             continue
+        if all_new != 0 and wp.length_sq(normals[h]) == zero:
+            continue  # a touching pair with no defined normal (contact_geometry_kernel)
         r = int(-1)
         if all_new == 0:
             r = int(row[h])
