@@ -1,6 +1,6 @@
 """One command for every benchmark: ``python -m benchmarks`` (quick, minutes) or ``--full``.
 
-    python -m benchmarks [--full] [--only roots,ccd,sim,gradients,trade] [--out-dir benchmarks/results]
+    python -m benchmarks [--full] [--only roots,ccd,sim,gradients,trade,physics] [--out-dir benchmarks/results]
 
 Run from the repository root after ``make test`` (which builds ``.venv``):
 ``.venv/bin/python -m benchmarks``. Each benchmark prints its tables and writes
@@ -19,6 +19,8 @@ measured in the same run as its peer. The sections:
 * ``trade``: wall time against accuracy over substeps x integrator x thickness x rounds x
   response x the CCD decisions' precision / tolerance / root iteration cap per scene, ``M`` on the inverse scene, Pareto table and plot with the recommended
   setting (:mod:`benchmarks.trade`);
+* ``physics``: the physics validation suite, classic checks against closed forms for both
+  collision responses (:mod:`benchmarks.physics`; quick: 8 substeps, full: 4, 8, 16 and 32);
 * ``--full`` adds ``grazing`` (gradients across a grazing contact, plot), ``implicit``
   (implicit-integrator accuracy), ``rollout`` (time and memory of long rollouts) and ``inverse``
   (the inverse scenes over seeds, against CMA-ES and Newton).
@@ -43,7 +45,7 @@ sys.path.insert(0, ROOT)
 
 from benchmarks import report  # noqa: E402
 
-QUICK = ("roots", "ccd", "sim", "gradients", "trade")
+QUICK = ("roots", "ccd", "sim", "gradients", "trade", "physics")
 FULL = QUICK + ("grazing", "implicit", "rollout", "inverse")
 
 
@@ -95,6 +97,10 @@ def section(name: str, full: bool, out_dir: str) -> None:
         from benchmarks import trade
 
         trade.main((["--full"] if full else []) + ["--out", out])
+    elif name == "physics":
+        from benchmarks import physics
+
+        physics.main(([] if full else ["--quick"]) + ["--out-dir", out_dir])
     elif name == "grazing":
         from benchmarks import grazing
 

@@ -1,0 +1,264 @@
+"""The physics validation checks of ``benchmarks/physics.py``, one small setting each (8 substeps,
+the replayed response unless a test says otherwise, short runs), asserting that every row of the
+check passes its tolerance. The tolerances are the targets the physics must meet; the one check
+that fails at 8 substeps by a first-order time-step error asserts its convergence instead, and
+the one that fails outright (a cloth draped on a sphere still creeping) is marked
+``xfail(strict=True)`` with what it measured. Gradients through an impact (closed form) and
+through a landing held by static friction (central differences) close the file.
+
+Also: the measuring helpers (yaw from the quaternion, pass/fail of a record) and the command.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks import physics as P
+
+RESPONSE = "replayed"
+SUBSTEPS = 8
+
+
+def _assert_passed(rows: list[P.Record]) -> None:
+    assert rows, "the check returned no rows"
+    bad = [f"{r.label} ({r.response} x{r.substeps}): measured {r.measured:.6g}, expected {r.expected} "
+           f"(tolerance {r.tolerance:g}{' rel' if r.mode == 'rel' else ''}) {r.details.get('error', '')}"
+           for r in rows if not r.passed]
+    assert not bad, "\n".join(bad)
+
+
+# ------------------------------------------------------------------------------------------------
+# the measuring helpers
+
+
+def test_twist_and_rotation_angles():
+    qz = P._quat_axis_angle((0, 0, 1), 0.3)
+    qx = P._quat_axis_angle((1, 0, 0), 0.2)
+    q0 = P._quat_axis_angle((0, 1, 0), 0.7)  # an arbitrary start: angles are relative to it
+    assert P.twist_angle(np.array(qz), np.array([0, 0, 0, 1.0])) == pytest.approx(0.3, abs=1e-15)
+    assert abs(P.twist_angle(np.array(qx), np.array([0, 0, 0, 1.0]))) < 1e-16
+    # z-rotation applied after q0 (world frame): the yaw relative to q0 is its angle
+    q = P._quat_mul(np.array(qz), np.array(q0))
+    assert P.twist_angle(q, np.array(q0)) == pytest.approx(0.3, abs=1e-14)
+    assert P.rotation_angle(q, np.array(q0)) == pytest.approx(0.3, abs=1e-14)
+    # -q is the same rotation; a tiny yaw keeps its digits
+    assert P.twist_angle(-q, np.array(q0)) == pytest.approx(0.3, abs=1e-14)
+    tiny = P._quat_axis_angle((0, 0, 1), 1e-12)
+    assert P.twist_angle(np.array(tiny), np.array([0, 0, 0, 1.0])) == pytest.approx(1e-12, rel=1e-9)
+
+
+def test_record_pass_modes():
+    r = P._record("x", "replayed", 8, "q", 1.0005, expected_value=1.0, tolerance=1e-3, mode="rel", expected="1",
+                  reference="r")
+    assert r.passed and r.error == pytest.approx(5e-4)
+    r = P._record("x", "replayed", 8, "q", 2e-9, tolerance=1e-9, expected="0", reference="r")
+    assert not r.passed
+    r = P._record("x", "replayed", 8, "q", math.nan, tolerance=1.0, expected="0", reference="r")
+    assert not r.passed
+    r = P._record("x", "replayed", 8, "q", 0, tolerance=0.0, expected="0", reference="r")
+    assert r.passed
+
+
+def test_command_writes_table_and_json(tmp_path):
+    records = P.main(["--only", "sphere_bounce", "--responses", "replayed", "--substeps", "8",
+                      "--out-dir", str(tmp_path)])
+    assert len(records) == 1
+    data = json.loads((tmp_path / "physics.json").read_text())
+    row = data["checks"][0]
+    for key in ("name", "response", "substeps", "expected", "expected_value", "measured", "tolerance", "passed",
+                "reference"):
+        assert key in row
+    assert row["name"] == "sphere_bounce" and row["response"] == "replayed" and row["substeps"] == 8
+    md = (tmp_path / "physics.md").read_text()
+    assert "| check | response | substeps | reference/expected | measured | tolerance | result |" in md
+    with pytest.raises(SystemExit):
+        P.main(["--only", "nope", "--out-dir", str(tmp_path)])
+
+
+def test_suite_names_every_check():
+    assert list(P.CHECKS) == [
+        "flat_drop_plane", "flat_drop_static_box", "flat_drop_rigid_box", "slope_static", "slope_sliding",
+        "rest_plane", "rest_box", "stack", "restitution_sweep", "head_on", "free_rotation", "cloth_flat_box",
+        "cloth_hanging", "cloth_on_sphere", "sliding_friction", "sphere_bounce"]
+
+
+# ------------------------------------------------------------------------------------------------
+# the checks, one setting each
+
+
+def test_flat_drop_plane():
+    _assert_passed(P.check_flat_drop_plane(response=RESPONSE, substeps=SUBSTEPS, friction=0.3, seconds=1.0))
+
+
+def test_flat_drop_static_box():
+    _assert_passed(P.check_flat_drop_static_box(response=RESPONSE, substeps=SUBSTEPS, seconds=1.0))
+
+
+def test_flat_drop_rigid_box():
+    _assert_passed(P.check_flat_drop_rigid_box(response=RESPONSE, substeps=SUBSTEPS, seconds=1.0))
+
+
+def test_slope_static():
+    _assert_passed(P.check_slope_static(response=RESPONSE, substeps=SUBSTEPS, mu=0.5, seconds=2.0))
+
+
+def test_slope_sliding():
+    _assert_passed(P.check_slope_sliding(response=RESPONSE, substeps=SUBSTEPS, seconds=1.0))
+
+
+def test_rest_plane():
+    _assert_passed(P.check_rest_plane(response=RESPONSE, substeps=SUBSTEPS, seconds=2.0))
+
+
+def test_rest_box():
+    _assert_passed(P.check_rest_box(response=RESPONSE, substeps=SUBSTEPS, seconds=2.0))
+
+
+def test_stack():
+    _assert_passed(P.check_stack(response=RESPONSE, substeps=SUBSTEPS, boxes=3, seconds=2.0))
+
+
+def test_restitution_sweep():
+    _assert_passed(P.check_restitution_sweep(response=RESPONSE, substeps=SUBSTEPS, restitution=0.5))
+
+
+def test_head_on():
+    _assert_passed(P.check_head_on(response=RESPONSE, substeps=SUBSTEPS, gap=0.05))
+
+
+def test_free_rotation():
+    # 3.5 s holds two flips (1.05 s and 3.21 s): one flip interval
+    _assert_passed(P.check_free_rotation(response=RESPONSE, substeps=SUBSTEPS, seconds=3.5))
+
+
+def test_cloth_flat_box():
+    _assert_passed(P.check_cloth_flat_box(response=RESPONSE, substeps=SUBSTEPS, count=5))
+
+
+def test_cloth_hanging():
+    _assert_passed(P.check_cloth_hanging(response=RESPONSE, substeps=SUBSTEPS, seconds=6.0))
+
+
+@pytest.mark.xfail(strict=True, reason="the draped cloth has not come to rest: its centre creeps ~7e-5 m "
+                                       "horizontally in the last 0.5 s (particles still at ~0.1 m/s)")
+def test_cloth_on_sphere():
+    _assert_passed(P.check_cloth_on_sphere(response=RESPONSE, substeps=SUBSTEPS, seconds=1.5, window=0.5))
+
+
+def _relative_error(rows: list[P.Record]) -> float:
+    (row,) = rows
+    return (row.measured - row.expected_value) / row.expected_value
+
+
+def test_sliding_friction_within_tolerance_from_16_substeps_and_first_order():
+    """The stopping distance ``v^2 / (2 mu g)`` within 0.2 % from 16 substeps; at 8 it is short by
+    the O(h) offset ``v0 h / 2`` (friction acts from the start of each substep), which halves
+    with the substep."""
+    _assert_passed(P.check_sliding_friction(response=RESPONSE, substeps=16))
+    e8 = _relative_error(P.check_sliding_friction(response=RESPONSE, substeps=8))
+    e16 = _relative_error(P.check_sliding_friction(response=RESPONSE, substeps=16))
+    assert e8 < 0.0 and 1.6 < e8 / e16 < 2.4
+
+
+def test_sphere_bounce_converges_at_first_order():
+    """The apex ratio of a bounce against ``e^2``: low by ``g h (1 + e) / (e v)`` (the velocity
+    reflected at the substep's start of the bounce lags the parabola), so the error falls like
+    the substep: 4x from 8 to 32 substeps, under 0.5 % at 32."""
+    e8 = _relative_error(P.check_sphere_bounce(response=RESPONSE, substeps=8))
+    e32 = _relative_error(P.check_sphere_bounce(response=RESPONSE, substeps=32))
+    assert e8 < 0.0 and abs(e32) < 5e-3 and 3.0 < e8 / e32 < 5.0
+
+
+@pytest.mark.parametrize("restitution", [0.0, 1.0])
+def test_restitution_at_a_substep_boundary_and_mid_substep(restitution):
+    """e = 0 (no rebound, the separation restored at the position level) and e = 1, with the
+    impact exactly at the end of a substep (gap 0.05 m at 1 m/s, 8 substeps) and inside one."""
+    _assert_passed(P.check_restitution_sweep(response=RESPONSE, substeps=SUBSTEPS, restitution=restitution,
+                                             gaps=(0.05, 0.0505)))
+
+
+# ------------------------------------------------------------------------------------------------
+# gradients through the fixed physics: the rollout's against closed forms and central differences
+
+
+def _box_toward_static_box(restitution: float, gap: float):
+    """A box moving along x towards a larger static box (its corners well inside the face hit)."""
+    from sim.builder import ModelBuilder
+    from sim.mesh_io import box_mesh
+
+    b = ModelBuilder()
+    b.set_gravity((0.0, 0.0, 0.0))
+    b.add_rigid_body(*box_mesh(P.BOX_HALF), density=P.DENSITY, pos=(-2 * P.BOX_HALF - gap, 0.0, 0.0))
+    b.add_static_mesh(*box_mesh((P.BOX_HALF, 2 * P.BOX_HALF, 2 * P.BOX_HALF)))
+    b.set_contact(restitution=restitution, friction=0.0, thickness=P.THICKNESS)
+    return b.finalize()
+
+
+@pytest.mark.parametrize("gap", [0.0515, 0.0535])
+def test_gradient_through_an_impact_equals_the_closed_form(gap):
+    """A box at speed v hits a static box after ``gap / v`` and leaves at ``-e v``: its position at
+    T is ``x0 + gap (1 + e) - e v T``, so ``dx/dv = -e T`` (and ``dy/dv_y = T``), at two phases
+    of the impact in its substep. (A substep that starts closer than the thickness bounces at
+    its start, as a proximity contact: gap 0.0505 m bounces 0.5 mm early, and there
+    ``dx/dv = t_start - e (T - t_start)``; an impact exactly at a substep's end, gap 0.05 m, is
+    the kink between the two.)"""
+    import torch
+
+    from sim.rollout import rollout
+
+    e, steps = 0.5, 12
+    model = _box_toward_static_box(e, gap)
+    qd = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    res = rollout(model, steps, P.DT, SUBSTEPS, body_qd=qd)
+    assert res.stats["contact_substeps"] >= 1 and res.stats["failsafe_substeps"] == 0
+    T = steps * P.DT
+    (res.body_q[-1, 0, 0] + res.body_q[-1, 0, 1]).backward()
+    grad = qd.grad.numpy()[0]
+    np.testing.assert_allclose(grad[3], -e * T, rtol=1e-9)
+    np.testing.assert_allclose(grad[4], T, rtol=1e-9)
+    np.testing.assert_allclose(res.body_q[-1, 0, 0].item(), -2 * P.BOX_HALF - gap + gap * (1 + e) - e * T,
+                               rtol=0, atol=1e-12)
+
+
+def test_gradient_through_a_landing_held_by_static_friction_matches_central_differences():
+    """A box dropped onto a 20 degree slope (mu 0.5 > tan 20) lands and sticks: the replayed
+    gradient of its final position w.r.t. its start velocity (the landing point) equals central
+    differences of the same rollout."""
+    import torch
+
+    from sim.builder import ModelBuilder
+    from sim.mesh_io import box_mesh
+    from sim.rollout import rollout
+
+    angle = math.radians(20.0)
+    n = np.array([math.sin(angle), 0.0, math.cos(angle)])
+    b = ModelBuilder()
+    b.add_rigid_body(*box_mesh(P.BOX_HALF), density=P.DENSITY, pos=tuple(n * (P.BOX_HALF + 0.004)),
+                     rot=(0.0, math.sin(angle / 2), 0.0, math.cos(angle / 2)))
+    b.add_ground_plane(normal=tuple(n), offset=0.0)
+    b.set_contact(restitution=0.0, friction=0.5, thickness=P.THICKNESS)
+    model = b.finalize()
+    steps, start = 10, np.array([0.0, 0.0, 0.0, 0.05, 0.02, -0.3])
+
+    def final(v):
+        res = rollout(model, steps, P.DT, SUBSTEPS, body_qd=torch.tensor(v[None], dtype=torch.float64))
+        return res, res.body_q[-1, 0, :3].numpy()
+
+    qd = torch.tensor(start[None], dtype=torch.float64, requires_grad=True)
+    res = rollout(model, steps, P.DT, SUBSTEPS, body_qd=qd)
+    assert res.stats["contact_substeps"] >= 1 and res.stats["failsafe_substeps"] == 0
+    res.body_q[-1, 0, :3].sum().backward()
+    grad = qd.grad.numpy()[0]
+    step = 1e-6
+    for j in (3, 4, 5):
+        plus, minus = start.copy(), start.copy()
+        plus[j] += step
+        minus[j] -= step
+        fd = (final(plus)[1].sum() - final(minus)[1].sum()) / (2 * step)
+        assert abs(grad[j] - fd) <= 1e-5 * max(abs(fd), 1e-3), (j, grad[j], fd)
+    # static friction held it: the box has stopped on the slope
+    assert np.abs(res.body_qd[-1, 0].detach().numpy()).max() < 1e-9
