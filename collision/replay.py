@@ -409,20 +409,8 @@ class ContactReplay:
                       inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                               wp.float64(REGULARIZATION), tangent_weight],
                       outputs=[matrix], device=self.device)
-            vp, vb, total = vm_p, vm_b, None
-            for _ in range(2):  # the solve and its refinement (see the normal passes)
-                rhs = self._zeros(m, wp.float64)
-                wp.launch(K.sticking_rhs_kernel, dim=m,
-                          inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                                  self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
-                          outputs=[rhs], device=self.device)
-                solution = self._dense_solve(matrix, rhs)
-                impulses = self._zeros(c, wp.vec3d)
-                wp.launch(K.sticking_impulses_kernel, dim=c, inputs=[cu, solution, normals], outputs=[impulses],
-                          device=self.device)
-                vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
-                total = impulses if total is None else self._sum(total, impulses, c)
-            return vp, vb, total
+            return self._refined_impulses(matrix, m, K.sticking_rhs_kernel, K.sticking_impulses_kernel, (), uc, cu, c,
+                                          pairs_w, weights, normals, targets, sides, masses, lever, vm_p, vm_b)
 
         def outside(total) -> bool:
             count = self.take(1, wp.int32, grad=False)
@@ -495,19 +483,9 @@ class ContactReplay:
                   inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
                           *masses, wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
-        vp, vb, total = vm_p, vm_b, None
-        for _ in range(2):  # the solve and its refinement
-            rhs = self._zeros(n_u, wp.float64)
-            wp.launch(K.contact_rhs_kernel, dim=n_u,
-                      inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
-                      outputs=[rhs], device=self.device)
-            solution = self._dense_solve(matrix, rhs)
-            impulses = self._zeros(c, wp.vec3d)
-            wp.launch(K.sliding_impulses_kernel, dim=c, inputs=[cu, solution, normals, directions, mu],
-                      outputs=[impulses], device=self.device)
-            vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
-            total = impulses if total is None else self._sum(total, impulses, c)
+        vp, vb, total = self._refined_impulses(matrix, n_u, K.contact_rhs_kernel, K.sliding_impulses_kernel,
+                                               (directions, mu), uc, cu, c, pairs_w, weights, normals, targets, sides,
+                                               masses, lever, vm_p, vm_b)
         rejected = self.take(1, wp.int32, grad=False)
         with paused_tape():
             wp.launch(K.slip_reversed_kernel, dim=c,
@@ -519,6 +497,27 @@ class ContactReplay:
         normal = self._zeros(c, wp.vec3d)
         wp.launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
         return vp, vb, normal
+
+    def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
+                          pairs_w, weights, normals, targets, sides, masses, lever, vp, vb):
+        """The impulses of a system ``matrix`` (``rows`` equations from ``rhs_kernel``, impulses per contact
+        from ``impulse_kernel`` with ``impulse_args`` after the solution and the normals) on top
+        of the velocities ``vp``, ``vb``, solved and refined once on the residual (see the
+        normal passes of :meth:`_solve`). Returns (particle_qd, body_qd, the summed impulses)."""
+        total = None
+        for _ in range(2):
+            rhs = self._zeros(rows, wp.float64)
+            wp.launch(rhs_kernel, dim=rows,
+                      inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
+                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                      outputs=[rhs], device=self.device)
+            solution = self._dense_solve(matrix, rhs)
+            impulses = self._zeros(c, wp.vec3d)
+            wp.launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
+                      device=self.device)
+            vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
+            total = impulses if total is None else self._sum(total, impulses, c)
+        return vp, vb, total
 
     def _sum(self, a, b, count: int):
         """``a + b`` of two (count,) vec3 arrays into a fresh one."""
