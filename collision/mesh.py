@@ -81,6 +81,24 @@ def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np
     return flat
 
 
+def flat_edge_opposites(flat: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """For each flat edge ``(a, b)`` of ``flat`` (K, 2) (:func:`flat_edges`), the third vertices
+    of its two ``faces`` (F, 3), (K, 2) int64: with them a point beyond the edge can be tested
+    against the neighbouring face (a box face's diagonal leads to the face's other half, not to
+    the whole plane beyond it)."""
+    out = np.full((len(flat), 2), -1, dtype=np.int64)
+    if not len(flat):
+        return out
+    row = {(int(min(a, b)), int(max(a, b))): k for k, (a, b) in enumerate(np.asarray(flat, dtype=np.int64))}
+    for f in np.asarray(faces, dtype=np.int64):
+        for i in range(3):
+            a, b, c = int(f[i]), int(f[(i + 1) % 3]), int(f[(i + 2) % 3])
+            k = row.get((min(a, b), max(a, b)))
+            if k is not None:
+                out[k, 0 if out[k, 0] < 0 else 1] = c
+    return out
+
+
 @dataclass
 class CollisionMesh:
     """Vertices, faces and edges of everything in a model that can collide (see the module
@@ -103,6 +121,8 @@ class CollisionMesh:
         flat_edges: (E - E', 2) int64, the other rows of ``edges``: edges inside a flat region
             of a rigid or static surface (vertex-face contacts whose closest point lies on one
             take the face's normal, :func:`kernels.contact.contact_geometry_kernel`).
+        flat_opposites: (E - E', 2) int64, the third vertices of the two faces of each flat edge
+            (:func:`flat_edge_opposites`).
         vertex_type: (V,) int64, ``VERTEX_*``.
         vertex_owner: (V,) int64: particle index, body index, or 0 for static vertices.
         local: (V, 3) float64: body-frame positions [m] of rigid vertices, world positions of
@@ -120,6 +140,7 @@ class CollisionMesh:
     edges: np.ndarray
     feature_edges: np.ndarray
     flat_edges: np.ndarray
+    flat_opposites: np.ndarray
     vertex_type: np.ndarray
     vertex_owner: np.ndarray
     local: np.ndarray
@@ -154,6 +175,7 @@ class CollisionMesh:
             edges=edges,
             feature_edges=edges[~flat],
             flat_edges=edges[flat],
+            flat_opposites=flat_edge_opposites(edges[flat], faces[T:]),
             vertex_type=np.concatenate([np.full(P, VERTEX_PARTICLE), np.full(S, VERTEX_BODY),
                                         np.full(G, VERTEX_STATIC)]).astype(np.int64),
             vertex_owner=np.concatenate([np.arange(P), shape_body, np.zeros(G)]).astype(np.int64),

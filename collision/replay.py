@@ -97,18 +97,28 @@ class ContactReplay:
         particle_inv_mass, body_inv_mass, body_inv_inertia: the model's arrays (may be empty).
         planes: (K, 4) plane normals and offsets.
         device: Warp device.
+        flat_edges, flat_opposites: (K, 2) the flat edges of rigid and static surfaces and the
+            third vertices of their two faces (:class:`collision.mesh.CollisionMesh`).
     """
 
     def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
-                 planes, friction: float, restitution: float, device, flat_edges=None):
+                 planes, friction: float, restitution: float, device, flat_edges=None,
+                 flat_opposites=None):
         self.device = device
         self.n_vertices = len(vertex_type)
         # the flat edges (collision.mesh.flat_edges) as sorted keys lo * base + hi, for the
         # contact geometry's look-up (one key that matches no edge when there are none)
         self.flat_key_base = self.n_vertices + 1
         flat = np.zeros((0, 2), np.int64) if flat_edges is None else np.sort(np.asarray(flat_edges, np.int64), axis=1)
-        keys = np.sort(flat[:, 0] * self.flat_key_base + flat[:, 1]) if len(flat) else np.full(1, -1, np.int64)
-        self.flat_keys = wp.array(keys, dtype=wp.int64, device=device)
+        opposite = np.full((len(flat), 2), -1, np.int64) if flat_opposites is None \
+            else np.asarray(flat_opposites, np.int64).reshape(-1, 2)
+        keys = flat[:, 0] * self.flat_key_base + flat[:, 1]
+        order = np.argsort(keys)
+        if not len(flat):  # one key that matches no edge
+            keys, opposite, order = np.full(1, -1, np.int64), np.full((1, 2), -1, np.int64), np.zeros(1, np.int64)
+        self.flat_keys = wp.array(keys[order], dtype=wp.int64, device=device)
+        # the third vertices of each flat edge's two faces, in key order (-1: unknown)
+        self.flat_opposites = wp.array(opposite[order].astype(np.int32), dtype=wp.vec2i, device=device)
         vt = np.append(np.asarray(vertex_type, dtype=np.int32), 2)  # the dummy is static
         vo = np.append(np.asarray(vertex_owner, dtype=np.int32), 0)
         self.vertex_type = wp.array(vt.astype(np.int32), dtype=wp.int32, device=device)
@@ -248,7 +258,7 @@ class ContactReplay:
                     self._or(vm_b, self.empty_twist), self._or(vc_b, self.empty_twist),
                     particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
-                    wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys,
+                    wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys, self.flat_opposites,
                     wp.int64(self.flat_key_base), 1],
             outputs=[toi, w, n, target, push], device=self.device,
         )
@@ -389,7 +399,8 @@ class ContactReplay:
         """Every active contact sticking: three unknowns each (:func:`kernels.contact.contact_axis`),
         the normal relative velocity brought to its target and the tangential one to zero by one
         exact solve and its refinement. Returns ``(particle_qd, body_qd, normal impulses)`` as
-        :meth:`solve`, or None when some contact's impulse pulls or leaves its friction cone.
+        :meth:`solve`, or None when some contact's impulse leaves its friction cone (a pulling
+        contact is left to the caller's repair of the active set).
 
         Redundant contacts leave the split of the friction among them free: it is chosen in
         proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
@@ -413,7 +424,10 @@ class ContactReplay:
                                           pairs_w, weights, normals, targets, sides, masses, lever, vm_p, vm_b)
 
         def outside(total) -> bool:
-            count = self.take(1, wp.int32, grad=False)
+            # a pulling contact is no reason to leave sticking: the caller's repair of the active
+            # set drops it (redundant contacts, such as the coincident corners of two stacked
+            # boxes, may split the load with a small pull)
+            count = self.take(2, wp.int32, grad=False)
             with paused_tape():
                 wp.launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
                           outputs=[count], device=self.device)

@@ -453,7 +453,7 @@ class ImpulseCollisionHandler:
             m.particle_inv_mass if self.n_particles else None,
             m.body_inv_mass if self.n_bodies else None,
             m.body_inv_inertia if self.n_bodies else None,
-            self.planes, m.friction, m.restitution, m.device, mesh.flat_edges,
+            self.planes, m.friction, m.restitution, m.device, mesh.flat_edges, mesh.flat_opposites,
         )
         # the Gauss-Seidel path's device decisions (kernels.contact_set): the contact set, one
         # detection pass's hits, the plane tests' vertices, distances and hits, the counters
@@ -744,7 +744,7 @@ class ImpulseCollisionHandler:
             x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
             H.plane, R.planes, *self._v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
-            float(self.max_derivative), 0, R.flat_keys, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
+            float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
             self._staging.empty("hit_push", max(H.count, 1), wp.float64)])
 
     def _add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
@@ -760,7 +760,7 @@ class ImpulseCollisionHandler:
         merge = merge if record else (self._no_merge,) * 3
         self._launches.launch("add", add_contacts_kernel, 1, [
             H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
-            cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
+            self._replay.vertex_type, cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
             cs.timed, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
         cs.count = int(host(cs.counter)[0])
 

@@ -536,9 +536,10 @@ def pair_scale(y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.flo
 
 
 @wp.func
-def is_flat_edge(a: int, b: int, flat_keys: wp.array(dtype=wp.int64), base: wp.int64) -> bool:
-    """Whether the edge ``(a, b)`` is one of the sorted ``flat_keys`` (``lo * base + hi``): an
-    edge between two coplanar faces of a rigid or static surface (:func:`collision.mesh.flat_edges`)."""
+def flat_edge_index(a: int, b: int, flat_keys: wp.array(dtype=wp.int64), base: wp.int64) -> int:
+    """The row of the edge ``(a, b)`` in the sorted ``flat_keys`` (``lo * base + hi``), or -1
+    when it is not an edge between two coplanar faces of a rigid or static surface
+    (:func:`collision.mesh.flat_edges`)."""
     key = wp.int64(wp.min(a, b)) * base + wp.int64(wp.max(a, b))
     lo = int(0)
     hi = flat_keys.shape[0]
@@ -548,7 +549,9 @@ def is_flat_edge(a: int, b: int, flat_keys: wp.array(dtype=wp.int64), base: wp.i
             lo = mid + 1
         else:
             hi = mid
-    return lo < flat_keys.shape[0] and flat_keys[lo] == key
+    if lo < flat_keys.shape[0] and flat_keys[lo] == key:
+        return lo
+    return -1
 
 
 @wp.func
@@ -558,20 +561,54 @@ def crossed(side: wp.float64, on_edge: bool) -> bool:
 
 
 @wp.func
+def beyond_flat_edge(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: int, ia: int, ib: int, n: wp.vec3d,
+                     flat_keys: wp.array(dtype=wp.int64), flat_opposites: wp.array(dtype=wp.vec2i),
+                     base: wp.int64, x0: wp.array(dtype=wp.vec3d), x1: wp.array(dtype=wp.vec3d),
+                     frac: wp.float64, on_edge: bool) -> bool:
+    """Whether ``p``, beyond the edge ``ab`` (vertices ``ia``, ``ib``) of a face whose third
+    vertex is ``c`` and whose normal is ``n``, lies over the neighbouring face across it: the
+    edge is flat and ``p`` crosses neither of the neighbour's other two edges, unless that edge is
+    flat too (a point below a box face's corner is beyond the face's diagonal, but beside the
+    face, not over its other half)."""
+    row = flat_edge_index(ia, ib, flat_keys, base)
+    if row < 0:
+        return False
+    o = flat_opposites[row]
+    d = o[0]
+    if d == c:
+        d = o[1]
+    if d < 0:
+        return True
+    y = x0[d] + frac * (x1[d] - x0[d])
+    # the neighbour (b, a, d) has the face's orientation; its edges a-d and d-b
+    if crossed(wp.dot(wp.cross(y - p, b - p), n), on_edge) and flat_edge_index(ib, d, flat_keys, base) < 0:
+        return False
+    if crossed(wp.dot(wp.cross(a - p, y - p), n), on_edge) and flat_edge_index(d, ia, flat_keys, base) < 0:
+        return False
+    return True
+
+
+@wp.func
 def beside_flat_region(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, q: wp.vec4i,
-                       flat_keys: wp.array(dtype=wp.int64), base: wp.int64, on_edge: bool) -> bool:
+                       flat_keys: wp.array(dtype=wp.int64), flat_opposites: wp.array(dtype=wp.vec2i),
+                       base: wp.int64, x0: wp.array(dtype=wp.vec3d), x1: wp.array(dtype=wp.vec3d),
+                       frac: wp.float64, on_edge: bool) -> bool:
     """Whether the projection of ``p`` on the plane of the triangle ``abc`` (vertices
-    ``q[1], q[2], q[3]``) lies inside it or beyond flat edges only (the signs of its unnormalised
-    barycentric coordinates; an edge is crossed when the opposite vertex's is negative, or with
-    ``on_edge`` zero too)."""
+    ``q[1], q[2], q[3]``, positions at ``frac`` of the paths ``x0 -> x1``) lies inside it or over
+    a coplanar neighbour across a flat edge (the signs of its unnormalised barycentric
+    coordinates; an edge is crossed when the opposite vertex's is negative, or with ``on_edge``
+    zero too; :func:`beyond_flat_edge`)."""
     n = wp.cross(b - a, c - a)
     inside = True
     if crossed(wp.dot(wp.cross(b - p, c - p), n), on_edge):
-        inside = inside and is_flat_edge(q[2], q[3], flat_keys, base)
+        inside = inside and beyond_flat_edge(p, b, c, q[1], q[2], q[3], n, flat_keys, flat_opposites, base, x0, x1,
+                                             frac, on_edge)
     if crossed(wp.dot(wp.cross(c - p, a - p), n), on_edge):
-        inside = inside and is_flat_edge(q[3], q[1], flat_keys, base)
+        inside = inside and beyond_flat_edge(p, c, a, q[2], q[3], q[1], n, flat_keys, flat_opposites, base, x0, x1,
+                                             frac, on_edge)
     if crossed(wp.dot(wp.cross(a - p, b - p), n), on_edge):
-        inside = inside and is_flat_edge(q[1], q[2], flat_keys, base)
+        inside = inside and beyond_flat_edge(p, a, b, q[3], q[1], q[2], n, flat_keys, flat_opposites, base, x0, x1,
+                                             frac, on_edge)
     return inside
 
 
@@ -604,6 +641,7 @@ def contact_geometry_kernel(
     max_derivative: wp.float64,
     nearest_slot: wp.int32,
     flat_keys: wp.array(dtype=wp.int64),
+    flat_opposites: wp.array(dtype=wp.vec2i),
     flat_key_base: wp.int64,
     split_push: wp.int32,
     toi: wp.array(dtype=wp.float64),
@@ -624,7 +662,7 @@ def contact_geometry_kernel(
       crossing time for vertex-plane hits (source 6); otherwise the detected fraction.
     * weights and normal at ``t*`` (:func:`pair_weights`; the face / edge-edge normal oriented
       by the start offset, or, for proximity pairs, the offset direction, the face's normal for
-      a vertex over the face or its flat neighbours (``flat_keys``); touching pairs: the face's
+      a vertex over the face or its coplanar neighbours (``flat_keys``, ``flat_opposites``); touching pairs: the face's
       outward normal, crossing edges' cross product oriented by their lever arms, else a zero
       normal, which keeps the pair out of the contact set).
     * target: proximity ``max(-e v_n, rate (delta - d) / h)`` when it approaches faster than
@@ -708,7 +746,8 @@ def contact_geometry_kernel(
             if kind == PAIR_VERTEX_FACE and geo_ok:
                 # a vertex touching a face's border edge may lie in the face's plane (two
                 # boxes flush side by side): only its inside gives the face's normal then
-                over_face = beside_flat_region(y0, y1, y2, y3, q, flat_keys, flat_key_base, touching)
+                over_face = beside_flat_region(y0, y1, y2, y3, q, flat_keys, flat_opposites, flat_key_base, x0, x1, frac,
+                                               touching)
             if over_face:
                 # the vertex lies over the face or over flat neighbours of it: the face's normal
                 # (the offset to a flat edge's closest point tilts with the vertex's sideways
@@ -1392,15 +1431,19 @@ def outside_cone_kernel(
     friction: wp.float64,
     count: wp.array(dtype=wp.int32),
 ):
-    """Counts the active contacts whose impulse pulls (``j . n < 0``) or leaves the friction
-    cone (``|j_t| > mu j . n``): a decision (whether every contact can stick)."""
+    """Counts the active contacts whose impulse leaves the friction cone (``|j_t| > mu j . n``
+    with ``j . n >= 0``; ``count[0]``) and those whose impulse pulls (``j . n < 0``;
+    ``count[1]``): decisions (whether every contact can stick; which contacts the active set's
+    repair drops)."""
     c = wp.tid()
     if contact_unknown[c] < 0:
         return
     j = impulses[c]
     n = normals[c]
     jn = wp.dot(j, n)
-    if jn < wp.float64(0.0) or wp.length(j - jn * n) > friction * jn:
+    if jn < wp.float64(0.0):
+        wp.atomic_add(count, 1, 1)
+    elif wp.length(j - jn * n) > friction * jn:
         wp.atomic_add(count, 0, 1)
 
 

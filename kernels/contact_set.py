@@ -342,6 +342,52 @@ def approach_kernel(
         wp.atomic_add(counter, 0, 1)
 
 
+DUPLICATE_ROW_TOLERANCE = 1.0e-9
+"""Two contacts are one constraint when they move the same vertices with weighted normals
+``w_k n`` that agree to this (weights are barycentric, O(1))."""
+
+
+@wp.func
+def row_entry_matches(v: int, wn: wp.vec3d, vertices: wp.vec4i, weights: wp.vec4d, normal: wp.vec3d) -> bool:
+    """Whether the contact ``(vertices, weights, normal)`` moves vertex ``v`` with the weighted
+    normal ``wn``."""
+    found = bool(False)
+    for j in range(4):
+        if weights[j] != wp.float64(0.0) and vertices[j] == v:
+            if wp.length(weights[j] * normal - wn) <= wp.float64(DUPLICATE_ROW_TOLERANCE):
+                found = True
+    return found
+
+
+@wp.func
+def same_constraint(va: wp.vec4i, wa: wp.vec4d, na: wp.vec3d, vb: wp.vec4i, wb: wp.vec4d, nb: wp.vec3d) -> bool:
+    """Whether two contacts are the same constraint on the velocities: the same vertices with
+    the same weighted normals (a corner resting on a corner is found by the vertex-face pairs
+    of every face at either corner, each with the vertical normal; either orientation of the
+    pair gives the same row)."""
+    count_a = int(0)
+    count_b = int(0)
+    same = bool(True)
+    for k in range(4):
+        if wa[k] != wp.float64(0.0):
+            count_a += 1
+            if not row_entry_matches(va[k], wa[k] * na, vb, wb, nb):
+                same = False
+        if wb[k] != wp.float64(0.0):
+            count_b += 1
+    return same and count_a == count_b
+
+
+@wp.func
+def rigid_only(vertices: wp.vec4i, weights: wp.vec4d, vertex_type: wp.array(dtype=wp.int32)) -> bool:
+    """Whether no vertex a contact moves (nonzero weight) is a particle."""
+    rigid = bool(True)
+    for k in range(4):
+        if weights[k] != wp.float64(0.0) and vertex_type[vertices[k]] == VERTEX_PARTICLE:
+            rigid = False
+    return rigid
+
+
 @wp.kernel
 def add_contacts_kernel(
     hit_count: int,
@@ -356,6 +402,7 @@ def add_contacts_kernel(
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
     targets: wp.array(dtype=wp.float64),
+    vertex_type: wp.array(dtype=wp.int32),
     base: int,
     record_merge: int,
     contact_kind: wp.array(dtype=wp.int32),
@@ -374,7 +421,9 @@ def add_contacts_kernel(
     keep_target: wp.array(dtype=wp.int32),
 ):
     """Grows the contact set (``base`` rows) by the approaching hits (every hit with a normal
-    with ``all_new``: the proximity pass into the empty set), launched with ``dim=1`` so that new
+    with ``all_new``: the proximity pass into the empty set, less the hits between rigid or
+    static surfaces that repeat an accepted hit's constraint, :func:`same_constraint`: their
+    targets agree to rounding, being computed from the same points), launched with ``dim=1`` so that new
     pairs are appended in the hits' order on every device. A hit whose pair is in the set
     (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
     the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
@@ -397,6 +446,18 @@ def add_contacts_kernel(
             continue
         if all_new != 0 and wp.length_sq(normals[h]) == zero:
             continue  # a touching pair with no defined normal (contact_geometry_kernel)
+        if all_new != 0 and rigid_only(vertices[h], weights[h], vertex_type):
+            # a proximity hit between rigid or static surfaces that repeats an accepted one's
+            # constraint (same_constraint) adds a redundant row: the solves would split one
+            # load among copies of itself (cloth is left alone: its near-copies part
+            # continuously as it bends, and dropping one below a threshold would be a jump)
+            duplicate = bool(False)
+            for r2 in range(base, n):
+                if not duplicate and same_constraint(vertices[h], weights[h], normals[h], contact_vertices[r2],
+                                                     contact_weights[r2], contact_normals[r2]):
+                    duplicate = True
+            if duplicate:
+                continue
         r = int(-1)
         if all_new == 0:
             r = int(row[h])

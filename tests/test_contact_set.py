@@ -69,8 +69,9 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
     merge = [wp.zeros(8, dtype=wp.int32, device=DEV) for _ in range(3)]
     wp.launch(add_contacts_kernel, 1, [
         H.count, 0, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
-        H.targets, cs.count, 1, cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed,
-        cs.normal_impulse, cs.friction_impulse, cs.counter, *merge], device=DEV)
+        H.targets, wp.zeros(16, dtype=wp.int32, device=DEV), cs.count, 1, cs.kind, cs.pair, cs.vertices, cs.toi,
+        cs.weights, cs.normals, cs.targets, cs.timed, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge],
+        device=DEV)
     cs.count = int(cs.counter.numpy()[0])
     assert cs.count == 3
     np.testing.assert_array_equal(cs.host("pair"), [[1, 2], [3, 4], [5, 6]])
@@ -200,3 +201,31 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
     handler._narrow.near_count = near_twice
     with pytest.raises(RuntimeError, match="pair twice"):
         handler(s0, s1, 1.0 / 240)
+
+
+def test_proximity_hits_repeating_a_rigid_constraint_join_once():
+    """The proximity pass into the empty set (``all_new``): a corner resting on a corner is found
+    by the vertex-face pairs of several faces, each the same row (vertex 0 against vertex 1, the
+    normal +z; the second hit with the pair's other orientation: vertex 1 against vertex 0, normal
+    -z). Between rigid vertices the copies join once; the same rows between particles all join
+    (cloth's near-copies part continuously); a hit with another weight or normal is no copy."""
+    for vertex_type, expected in ((1, 3), (0, 5)):
+        cs, H = Contacts(DEV), Hits(DEV)
+        up, down = [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]
+        _fill(H, kind=[0] * 5, pair=[[0, 1], [0, 2], [1, 3], [0, 4], [0, 5]],
+              vertices=[[0, 1, 2, 3], [0, 4, 1, 5], [1, 0, 6, 7], [0, 1, 2, 3], [0, 1, 2, 3]],
+              source=[0] * 5, toi=[0.0] * 5,
+              weights=[[1.0, -1.0, 0.0, 0.0], [1.0, 0.0, -1.0, 0.0], [1.0, -1.0, 0.0, 0.0], [1.0, -0.5, -0.5, 0.0],
+                       [1.0, -1.0, 0.0, 0.0]],
+              normals=[up, up, down, up, [0.0, 1.0, 0.0]], targets=[0.1] * 5, approaching=[0] * 5)
+        cs.reserve(8)
+        merge = [wp.zeros(8, dtype=wp.int32, device=DEV) for _ in range(3)]
+        wp.launch(add_contacts_kernel, 1, [
+            H.count, 1, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
+            H.targets, wp.array(np.full(16, vertex_type, np.int32), dtype=wp.int32, device=DEV), 0, 1, cs.kind,
+            cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed, cs.normal_impulse,
+            cs.friction_impulse, cs.counter, *merge], device=DEV)
+        count = int(cs.counter.numpy()[0])
+        assert count == expected, (vertex_type, count)
+        if vertex_type == 1:
+            np.testing.assert_array_equal(merge[0].numpy()[:3], [0, 3, 4])  # the hit each row takes
