@@ -107,6 +107,7 @@ class Arena:
         self.device = device
         self._pools: dict = {}  # (dtype, square, size) -> arrays
         self._taken: dict = {}  # (dtype, square, size) -> how many this call has taken
+        self._views: dict = {}  # (pool key, slot, rows) -> the view handed out
 
     def begin(self) -> None:
         self._taken.clear()
@@ -122,7 +123,11 @@ class Arena:
         pool = self._pools.setdefault(key, [])
         if k == len(pool):
             pool.append(wp.zeros((size, size) if square else size, dtype=dtype, device=self.device))
-        out = pool[k][:n, :n] if square else pool[k][:n]
+        # the view of this slot and size, made once (slicing a Warp array costs ~20 us of Python)
+        view_key = (key, k, n)
+        out = self._views.get(view_key)
+        if out is None:
+            out = self._views[view_key] = pool[k][:n, :n] if square else pool[k][:n]
         if zero:
             out.zero_()
         return out

@@ -33,7 +33,7 @@ import numpy as np
 import warp as wp
 import warp._src.context as _warp_context
 
-from collision.buffers import Arena, upload
+from collision.buffers import Arena, RecordedLaunches, upload
 from kernels import contact as K
 from kernels.contact_set import active_unknowns_kernel
 
@@ -148,8 +148,18 @@ class ContactReplay:
         self._no_float = wp.zeros(1, dtype=wp.float64, device=device)
         self.largest_system = 0
         self._arena = Arena(device)  # the arrays of calls without a tape
+        self._recorded = RecordedLaunches(device)  # the launches of calls without a tape
 
     # ------------------------------------------------------------------ helpers
+    def _launch(self, kernel, dim, inputs=(), outputs=(), device=None) -> None:
+        """``wp.launch`` of ``kernel`` on this model's device; while no tape records or is paused,
+        through a recorded command (:class:`collision.buffers.RecordedLaunches`: Warp's argument
+        packing costs more than most of these kernels on a few hundred contacts)."""
+        if any_tape():
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
+        elif dim if isinstance(dim, int) else all(dim):  # an empty launch runs nothing
+            self._recorded.launch(kernel, kernel, dim, [*inputs, *outputs])
+
     def _grad(self) -> bool:
         return active_tape() is not None
 
@@ -207,7 +217,7 @@ class ContactReplay:
         x = self._zeros(n, wp.vec3d)
         lever = self._zeros(n, wp.vec3d)
         inv_inertia = self._zeros(max(bodies, 1), wp.mat33d)
-        wp.launch(
+        self._launch(
             K.pose_start_kernel, dim=max(n, bodies),
             inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local, self._or(self.body_inv_inertia_body, self._no_inertia), n, bodies],
@@ -219,7 +229,7 @@ class ContactReplay:
         """World positions of all collidable vertices (+ the dummy vertex)."""
         n = self.n_vertices + 1
         x = self._zeros(n, wp.vec3d)
-        wp.launch(
+        self._launch(
             K.pose_positions_kernel, dim=n,
             inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local],
@@ -248,7 +258,7 @@ class ContactReplay:
         target = self._zeros(c, wp.float64)
         push = self._zeros(c, wp.float64)
         frozen = self.frozen
-        wp.launch(
+        self._launch(
             K.contact_geometry_kernel, dim=c,
             inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
                     frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
@@ -275,7 +285,7 @@ class ContactReplay:
         if old is None:
             old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d),
                    self._zeros(1, wp.float64))
-        wp.launch(
+        self._launch(
             K.merge_contacts_kernel, dim=c,
             inputs=[*old[:4], *new[:4], old[4], new[4], new_index, keep_old_toi, keep_old_target, old_count],
             outputs=list(out), device=self.device,
@@ -322,7 +332,7 @@ class ContactReplay:
         kinds_w = self.frozen(kinds, c)
         sides = (self.take(c, wp.vec2i, grad=False), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
                  self._zeros(c, wp.vec3d))
-        wp.launch(K.contact_sides_kernel, dim=c,
+        self._launch(K.contact_sides_kernel, dim=c,
                   inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
                   outputs=list(sides), device=self.device)
         # the active contacts as unknowns, in row order (a decision: off the tape)
@@ -330,7 +340,7 @@ class ContactReplay:
         cu = self.take(c, wp.int32, zero=False, grad=False)
         unknown_count = self.take(1, wp.int32, zero=False, grad=False)
         with paused_tape():
-            wp.launch(active_unknowns_kernel, dim=1, inputs=[c, active], outputs=[uc, cu, unknown_count],
+            self._launch(active_unknowns_kernel, dim=1, inputs=[c, active], outputs=[uc, cu, unknown_count],
                       device=self.device)
         n_u = int(unknown_count.numpy()[0])
         masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
@@ -342,7 +352,7 @@ class ContactReplay:
             return vm_p, vm_b, self._zeros(c, wp.vec3d), pushed(vm_p, vm_b)
         self.largest_system = max(self.largest_system, n_u)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
-        wp.launch(K.delassus_kernel, dim=(n_u, n_u),
+        self._launch(K.delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                           wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
@@ -350,7 +360,7 @@ class ContactReplay:
         def normal_pass(vp, vb):
             # normal impulses that bring every active contact's normal velocity to its target
             rhs = self._zeros(n_u, wp.float64)
-            wp.launch(K.contact_rhs_kernel, dim=n_u,
+            self._launch(K.contact_rhs_kernel, dim=n_u,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
@@ -385,7 +395,7 @@ class ContactReplay:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
             friction = self._zeros(c, wp.vec3d)
-            wp.launch(K.friction_impulses_kernel, dim=c,
+            self._launch(K.friction_impulses_kernel, dim=c,
                       inputs=[normal, share, pairs_w, weights, normals, self.vertex_type,
                               self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
                               self._or(vb, self.empty_twist), wp.float64(self.friction)],
@@ -413,10 +423,10 @@ class ContactReplay:
         def trial(loads):
             tangent_weight = self.take(c, wp.float64, zero=False, grad=False)
             with paused_tape():
-                wp.launch(K.tangent_weights_kernel, dim=1, inputs=[c, cu, loads, normals], outputs=[tangent_weight],
+                self._launch(K.tangent_weights_kernel, dim=1, inputs=[c, cu, loads, normals], outputs=[tangent_weight],
                           device=self.device)
             matrix = self._zeros(0, wp.float64, shape=(m, m))
-            wp.launch(K.sticking_delassus_kernel, dim=(m, m),
+            self._launch(K.sticking_delassus_kernel, dim=(m, m),
                       inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                               wp.float64(REGULARIZATION), tangent_weight],
                       outputs=[matrix], device=self.device)
@@ -429,7 +439,7 @@ class ContactReplay:
             # boxes, may split the load with a small pull)
             count = self.take(2, wp.int32, grad=False)
             with paused_tape():
-                wp.launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
+                self._launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
                           outputs=[count], device=self.device)
             return bool(count.numpy()[0])
 
@@ -441,7 +451,7 @@ class ContactReplay:
             if outside(total):
                 return None
         normal_part = self._zeros(c, wp.vec3d)
-        wp.launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal_part], device=self.device)
+        self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal_part], device=self.device)
         return vp, vb, normal_part
 
     def _pushed(self, active, c: int, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb):
@@ -455,21 +465,21 @@ class ContactReplay:
         cu = self.take(c, wp.int32, zero=False, grad=False)
         count = self.take(1, wp.int32, zero=False, grad=False)
         with paused_tape():
-            wp.launch(K.push_active_kernel, dim=c,
+            self._launch(K.push_active_kernel, dim=c,
                       inputs=[active, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[flags], device=self.device)
-            wp.launch(active_unknowns_kernel, dim=1, inputs=[c, flags], outputs=[uc, cu, count], device=self.device)
+            self._launch(active_unknowns_kernel, dim=1, inputs=[c, flags], outputs=[uc, cu, count], device=self.device)
         n = int(count.numpy()[0])
         if not n:
             return vp, vb
         matrix = self._zeros(0, wp.float64, shape=(n, n))
-        wp.launch(K.delassus_kernel, dim=(n, n),
+        self._launch(K.delassus_kernel, dim=(n, n),
                   inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                           wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
         rhs = self._zeros(n, wp.float64)
-        wp.launch(K.push_rhs_kernel, dim=n,
+        self._launch(K.push_rhs_kernel, dim=n,
                   inputs=[uc, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
                           self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                   outputs=[rhs], device=self.device)
@@ -487,13 +497,13 @@ class ContactReplay:
         turns back: it sticks)."""
         _, targets, _, normals, _ = contacts
         directions = self._zeros(c, wp.vec3d)
-        wp.launch(K.slip_directions_kernel, dim=c,
+        self._launch(K.slip_directions_kernel, dim=c,
                   inputs=[pairs_w, weights, normals, self.vertex_type, self.vertex_owner, lever,
                           self._or(vp_n, self.empty_vec), self._or(vb_n, self.empty_twist)],
                   outputs=[directions], device=self.device)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
         mu = wp.float64(self.friction)
-        wp.launch(K.sliding_delassus_kernel, dim=(n_u, n_u),
+        self._launch(K.sliding_delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
                           *masses, wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
@@ -502,14 +512,14 @@ class ContactReplay:
                                                masses, lever, vm_p, vm_b)
         rejected = self.take(1, wp.int32, grad=False)
         with paused_tape():
-            wp.launch(K.slip_reversed_kernel, dim=c,
+            self._launch(K.slip_reversed_kernel, dim=c,
                       inputs=[total, normals, directions, cu, pairs_w, weights, self.vertex_type, self.vertex_owner,
                               lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rejected], device=self.device)
         if int(rejected.numpy()[0]):
             return None
         normal = self._zeros(c, wp.vec3d)
-        wp.launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
+        self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
         return vp, vb, normal
 
     def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
@@ -521,13 +531,13 @@ class ContactReplay:
         total = None
         for _ in range(2):
             rhs = self._zeros(rows, wp.float64)
-            wp.launch(rhs_kernel, dim=rows,
+            self._launch(rhs_kernel, dim=rows,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
             solution = self._dense_solve(matrix, rhs)
             impulses = self._zeros(c, wp.vec3d)
-            wp.launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
+            self._launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
                       device=self.device)
             vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
             total = impulses if total is None else self._sum(total, impulses, c)
@@ -536,7 +546,7 @@ class ContactReplay:
     def _sum(self, a, b, count: int):
         """``a + b`` of two (count,) vec3 arrays into a fresh one."""
         out = self._zeros(count, wp.vec3d)
-        wp.launch(K.add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
+        self._launch(K.add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
         return out
 
     def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, solved=None):
@@ -551,7 +561,7 @@ class ContactReplay:
         out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
         unknowns, solution, normals, normal = solved if solved is not None else \
             (self._no_int, self._no_float, self.empty_vec, self._unused_impulses)
-        wp.launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
+        self._launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
                   inputs=[c, p_count, int(solved is not None), unknowns, solution, normals,
                           impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
                           self.vertex_owner, *sides, *masses, self._or(vp, self.empty_vec),
@@ -565,7 +575,7 @@ class ContactReplay:
         work = self.take((n, n), wp.float64, grad=False)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
-            wp.launch(K.dense_solve_kernel, dim=1, inputs=[matrix, rhs, 0], outputs=[work, solution],
+            self._launch(K.dense_solve_kernel, dim=1, inputs=[matrix, rhs, 0], outputs=[work, solution],
                       device=self.device)
         tape = active_tape()
         if tape is not None:
@@ -590,7 +600,7 @@ class ContactReplay:
         b_count = moving_b.shape[0] if moving_b is not None else 0
         out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
         out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
-        wp.launch(K.zone_select_kernel, dim=p_count + b_count,
+        self._launch(K.zone_select_kernel, dim=p_count + b_count,
                   inputs=[p_count, self.frozen(zone_p, p_count), self.frozen(zone_b, b_count),
                           self._or(moving_p, self.empty_vec), self._or(moving_b, self.empty_twist),
                           self._or(zone_vp, self.empty_vec), self._or(zone_vb, self.empty_twist)],
@@ -634,20 +644,20 @@ class ContactReplay:
             mass, first, momentum = self._zeros(nz, wp.float64), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
             angular, inertia = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.mat33d)
             members = [p_count, pz, bz, xp, vp_in, self.particle_inv_mass, bq, vb_in, b_mass]
-            wp.launch(K.zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
+            self._launch(K.zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
                       device=self.device)
-            wp.launch(K.zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
+            self._launch(K.zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
                       outputs=[angular, inertia], device=self.device)
-            wp.launch(K.zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
+            self._launch(K.zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
                       outputs=[centre, linear, omega], device=self.device)
         out_p, out_b = vp, vb
         if in_p:
             out_p = self._zeros(p_count, wp.vec3d)
-            wp.launch(K.zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
+            self._launch(K.zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
                       outputs=[out_p], device=self.device)
         if in_b:
             out_b = self._zeros(b_count, wp.spatial_vectord)
-            wp.launch(K.zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
+            self._launch(K.zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
                       outputs=[out_b], device=self.device)
         return out_p, out_b
 
@@ -662,7 +672,7 @@ class ContactReplay:
         xp = self._zeros(p_count, wp.vec3d) if p_count else None
         bq = self._zeros(b_count, wp.transformd) if b_count else None
         if p_count + b_count:
-            wp.launch(K.time_of_impact_kernel, dim=p_count + b_count,
+            self._launch(K.time_of_impact_kernel, dim=p_count + b_count,
                       inputs=[p_count, self._or(x0p, self.empty_vec), self._or(x_pred, self.empty_vec),
                               self._or(vm_p, self.empty_vec), self._or(vp, self.empty_vec),
                               particle_owner, self._or(bq0, self.empty_pose), self._or(bq_pred, self.empty_pose),
