@@ -409,8 +409,7 @@ class ContactReplay:
         """Every active contact sticking: three unknowns each (:func:`kernels.contact.contact_axis`),
         the normal relative velocity brought to its target and the tangential one to zero by one
         exact solve and its refinement. Returns ``(particle_qd, body_qd, normal impulses)`` as
-        :meth:`solve`, or None when some contact's impulse leaves its friction cone (a pulling
-        contact is left to the caller's repair of the active set).
+        :meth:`solve`, or None when some contact's impulse pulls or leaves its friction cone.
 
         Redundant contacts leave the split of the friction among them free: it is chosen in
         proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
@@ -434,14 +433,14 @@ class ContactReplay:
                                           pairs_w, weights, normals, targets, sides, masses, lever, vm_p, vm_b)
 
         def outside(total) -> bool:
-            # a pulling contact is no reason to leave sticking: the caller's repair of the active
-            # set drops it (redundant contacts, such as the coincident corners of two stacked
-            # boxes, may split the load with a small pull)
+            # a pulling contact rejects the trial too (counted apart by the kernel): accepting
+            # it for the active set's repair to drop made cloth_drop's energy grow to 1.59x its
+            # initial value over 2000 steps (measured)
             count = self.take(2, wp.int32, grad=False)
             with paused_tape():
                 self._launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
-                          outputs=[count], device=self.device)
-            return bool(count.numpy()[0])
+                             outputs=[count], device=self.device)
+            return bool(count.numpy()[0]) or bool(count.numpy()[1])
 
         vp, vb, total = trial(normal)
         if outside(total):
