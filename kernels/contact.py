@@ -1431,19 +1431,15 @@ def outside_cone_kernel(
     friction: wp.float64,
     count: wp.array(dtype=wp.int32),
 ):
-    """Counts the active contacts whose impulse leaves the friction cone (``|j_t| > mu j . n``
-    with ``j . n >= 0``; ``count[0]``) and those whose impulse pulls (``j . n < 0``;
-    ``count[1]``): decisions (whether every contact can stick; which contacts the active set's
-    repair drops)."""
+    """Counts the active contacts whose impulse pulls (``j . n < 0``) or leaves the friction
+    cone (``|j_t| > mu j . n``): a decision (whether every contact can stick)."""
     c = wp.tid()
     if contact_unknown[c] < 0:
         return
     j = impulses[c]
     n = normals[c]
     jn = wp.dot(j, n)
-    if jn < wp.float64(0.0):
-        wp.atomic_add(count, 1, 1)
-    elif wp.length(j - jn * n) > friction * jn:
+    if jn < wp.float64(0.0) or wp.length(j - jn * n) > friction * jn:
         wp.atomic_add(count, 0, 1)
 
 
