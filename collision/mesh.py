@@ -42,7 +42,7 @@ least this (a dihedral angle below ~1.4e-6 rad: the float64 rounding of a box's 
 with room to spare, and far below any modelled crease)."""
 
 
-def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which ``edges`` (E, 2) lie between exactly two ``faces`` (F, 3) that are coplanar and face
     the same way (vertex positions ``vertices`` (V, 3)), such as a box face's diagonal.
 
@@ -54,11 +54,15 @@ def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np
     box's face then turns about the vertical).
 
     Returns:
-        bool (E,) mask.
+        bool (E,) mask, and (E, 2) int64: the third vertices of each edge's two faces (-1 for an
+        edge without exactly two), with which a point beyond a flat edge can be tested against
+        the neighbouring face (a box face's diagonal leads to the face's other half, not to the
+        whole plane beyond it).
     """
     flat = np.zeros(len(edges), dtype=bool)
+    opposites = np.full((len(edges), 2), -1, dtype=np.int64)
     if not len(edges) or not len(faces):
-        return flat
+        return flat, opposites
     f = np.asarray(faces, dtype=np.int64)
     y = vertices[f]
     normal = np.cross(y[:, 1] - y[:, 0], y[:, 2] - y[:, 0])
@@ -67,6 +71,7 @@ def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np
     normal[ok] /= length[ok, None]
     # each face's three edges as (lo, hi) keys, matched to the edge rows
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    third = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])  # the vertex opposite each face edge
     e.sort(axis=1)
     n = int(max(edges.max(), f.max())) + 1
     row = np.searchsorted(edges[:, 0] * n + edges[:, 1], e[:, 0] * n + e[:, 1])
@@ -78,25 +83,9 @@ def flat_edges(edges: np.ndarray, faces: np.ndarray, vertices: np.ndarray) -> np
     fa, fb = face[order[start[two]]], face[order[start[two] + 1]]
     cos = np.einsum("ij,ij->i", normal[fa], normal[fb])
     flat[two] = ok[fa] & ok[fb] & (cos >= FLAT_EDGE_COSINE)
-    return flat
-
-
-def flat_edge_opposites(flat: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """For each flat edge ``(a, b)`` of ``flat`` (K, 2) (:func:`flat_edges`), the third vertices
-    of its two ``faces`` (F, 3), (K, 2) int64: with them a point beyond the edge can be tested
-    against the neighbouring face (a box face's diagonal leads to the face's other half, not to
-    the whole plane beyond it)."""
-    out = np.full((len(flat), 2), -1, dtype=np.int64)
-    if not len(flat):
-        return out
-    row = {(int(min(a, b)), int(max(a, b))): k for k, (a, b) in enumerate(np.asarray(flat, dtype=np.int64))}
-    for f in np.asarray(faces, dtype=np.int64):
-        for i in range(3):
-            a, b, c = int(f[i]), int(f[(i + 1) % 3]), int(f[(i + 2) % 3])
-            k = row.get((min(a, b), max(a, b)))
-            if k is not None:
-                out[k, 0 if out[k, 0] < 0 else 1] = c
-    return out
+    opposites[two, 0] = third[order[start[two]]]
+    opposites[two, 1] = third[order[start[two] + 1]]
+    return flat, opposites
 
 
 @dataclass
@@ -122,7 +111,7 @@ class CollisionMesh:
             of a rigid or static surface (vertex-face contacts whose closest point lies on one
             take the face's normal, :func:`kernels.contact.contact_geometry_kernel`).
         flat_opposites: (E - E', 2) int64, the third vertices of the two faces of each flat edge
-            (:func:`flat_edge_opposites`).
+            (:func:`flat_edges`).
         vertex_type: (V,) int64, ``VERTEX_*``.
         vertex_owner: (V,) int64: particle index, body index, or 0 for static vertices.
         local: (V, 3) float64: body-frame positions [m] of rigid vertices, world positions of
@@ -163,7 +152,7 @@ class CollisionMesh:
         edges = mesh_edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int64)
         local = np.concatenate([np.zeros((P, 3)), shape_vertices, static_vertices]).reshape(-1, 3)
         # rigid and static faces keep their shape; cloth faces bend, so all their edges stay
-        flat = flat_edges(edges, faces[T:], local)
+        flat, opposites = flat_edges(edges, faces[T:], local)
         return cls(
             particle_count=P,
             body_count=B,
@@ -175,7 +164,7 @@ class CollisionMesh:
             edges=edges,
             feature_edges=edges[~flat],
             flat_edges=edges[flat],
-            flat_opposites=flat_edge_opposites(edges[flat], faces[T:]),
+            flat_opposites=opposites[flat],
             vertex_type=np.concatenate([np.full(P, VERTEX_PARTICLE), np.full(S, VERTEX_BODY),
                                         np.full(G, VERTEX_STATIC)]).astype(np.int64),
             vertex_owner=np.concatenate([np.arange(P), shape_body, np.zeros(G)]).astype(np.int64),
