@@ -17,7 +17,7 @@ from collision.buffers import host
 
 _CONTACT_FIELDS = (("kind", wp.int32), ("pair", wp.vec2i), ("vertices", wp.vec4i), ("toi", wp.float64),
                    ("weights", wp.vec4d), ("normals", wp.vec3d), ("targets", wp.float64), ("timed", wp.int32),
-                   ("normal_impulse", wp.float64), ("friction_impulse", wp.vec3d))
+                   ("collided", wp.int32), ("normal_impulse", wp.float64), ("friction_impulse", wp.vec3d))
 
 _HIT_FIELDS = (("kind", wp.int32), ("pair", wp.vec2i), ("vertices", wp.vec4i), ("detected", wp.float64),
                ("source", wp.int32), ("plane", wp.int32), ("row", wp.int32), ("toi", wp.float64),
@@ -66,7 +66,9 @@ class Contacts(_Rows):
     substep [s]), ``weights`` (vec4: side A positive, summing to 1, side B negative, summing to
     -1), ``normals`` (unit, side B to side A), ``targets`` (least normal relative velocity after
     the impulses [m/s]), ``timed`` (the time comes from a root or a plane crossing, so the replay
-    differentiates it), ``normal_impulse`` and ``friction_impulse`` (accumulated [N s]).
+    differentiates it), ``collided`` (an approaching CCD hit reached the row in this substep: its
+    primitives meet within the substep unless the impulses stop them), ``normal_impulse`` and
+    ``friction_impulse`` (accumulated [N s]).
     ``count`` is the host's copy of the row count (the kernel that grows the set also writes it
     to ``counter``).
     """

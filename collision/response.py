@@ -17,7 +17,8 @@ model's components decide which groups exist and which may touch (cloth with its
    than the separation speed; ``v_n`` at the start) and restore ``SEPARATION_RATE`` of the
    missing gap ``delta - d`` per substep: as a velocity target in the Gauss-Seidel response, as
    a push of the positions alone in the replayed one (no velocity outlives it: an inelastic
-   impact does not rebound).
+   impact does not rebound; the push is a displacement over the whole substep, so a contact
+   that CCD finds at the very end of the substep still ends separated).
 2. **Continuous collision detection**: the planned motion (linear per vertex from the start to
    the planned end positions) goes through :class:`collision.broad_phase.BroadPhase` and the
    vertex-face / edge-edge narrow phase of :mod:`kernels.ccd` at zero thickness (the coplanarity
@@ -53,9 +54,9 @@ contacts, Gauss-Seidel sweeps, the active set's changes), the per-vertex positio
 broad-phase cover's box tests (views of the device arrays on the CPU) and, in the rare
 fail-safe, the approaching hits that join impact zones.
 
-Two forms share the detection: the default one above (projected Gauss-Seidel impulses; it
-reuses its buffers, so stepping allocates no Warp array, and its cost is measured per scene in
-``benchmarks/sim.py``), and with ``differentiable=True`` the replayed one (design.md
+Two forms share the detection: with ``differentiable=False`` the one above (projected
+Gauss-Seidel impulses; it reuses its buffers, so stepping allocates no Warp array, and its cost
+is measured per scene in ``benchmarks/sim.py``), and by default the replayed one (design.md
 "Differentiating collision response: decide, then replay"): the same decisions off the tape,
 then ``t*`` through the mollified roots, the exact impulse solve, the time-of-impact integration
 and the impact zones' rigid motion as taped Warp launches (:mod:`collision.replay`). Its
@@ -199,6 +200,15 @@ ACTIVE_SET_ITERATIONS = 20
 """Most repairs of the active set (drop pulling contacts, add violated ones, switch between
 sticking and sliding) after the exact solve of the replayed response."""
 
+ACTIVE_SET_COLLIDED_MAX_CONTACTS = 128
+"""Largest contact set in which the rows that a CCD hit reached are repaired to the approach
+test's tolerance (``APPROACH_EPS`` times the separation speed) instead of the active set's:
+their primitives meet within the substep, so any approach left over is a hit of the next CCD
+round again, and a cloth landing on a sphere and a box ran its eight rounds into the fail-safe
+on one contact violated by less than the active set's tolerance. Larger sets (a ball at
+200 m/s into a cloth: a few hundred rows) keep the active set's tolerance: there the tight one
+made the repairs thrash for minutes per step, and the fail-safe takes what is left."""
+
 ACTIVE_SET_PULLING = 1e-9
 """An active contact leaves the replayed response's active set when its exact normal impulse is
 below ``-ACTIVE_SET_PULLING`` times the largest one (it pulls; rounding of a zero impulse stays
@@ -340,8 +350,10 @@ class ImpulseCollisionHandler:
     Args:
         model: the finalised model (its surfaces, masses, restitution, friction, thickness).
         max_iterations: CCD/response rounds before the fail-safe.
-        differentiable: the decide-then-replay response (:meth:`_call_replayed`), which a
-            ``wp.Tape`` can record, instead of Gauss-Seidel impulses.
+        differentiable: the decide-then-replay response (:meth:`_call_replayed`, the default),
+            which a ``wp.Tape`` can record and which passes the physics validation suite
+            (``benchmarks/physics.py``); False: projected Gauss-Seidel impulses, 3-4x cheaper
+            per step, which fail the suite's flat drops, slopes, rest, stacks and restitution.
         max_derivative: the robust-division bound ``M`` of the replayed times of impact.
         ccd_options: the narrow phase's knobs that decide the CCD contacts, a dict of
             ``precision`` ("float64" / "float32"), ``tolerance_scale``, ``max_iterations`` and
@@ -366,7 +378,7 @@ class ImpulseCollisionHandler:
         separation: the separation ``delta`` [m] the proximity pass keeps.
     """
 
-    def __init__(self, model: Model, max_iterations: int = 8, differentiable: bool = False,
+    def __init__(self, model: Model, max_iterations: int = 8, differentiable: bool = True,
                  max_derivative: float = DEFAULT_MAX_DERIVATIVE, ccd_options: dict | None = None):
         self.model = model
         self.ccd_options = check_ccd_options(ccd_options)
@@ -761,7 +773,7 @@ class ImpulseCollisionHandler:
         self._launches.launch("add", add_contacts_kernel, 1, [
             H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
             self._replay.vertex_type, cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
-            cs.timed, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
+            cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
         cs.count = int(host(cs.counter)[0])
 
     def _plane_hits(self, x_w, delta: float | None) -> int:
@@ -1012,8 +1024,8 @@ class ImpulseCollisionHandler:
             po, bo, tp, tb = owners()
             toi = st["dev"][0] if st["dev"] is not None else R.take(1, wp.float64, grad=False)
             # positions move with the velocities plus the push (the separation restored)
-            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["xp"], bq0_w,
-                                   state_pred.body_q if B else None, vm_b, st["xb"], po, bo, toi, h)
+            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], st["xp"], bq0_w,
+                                   state_pred.body_q if B else None, vm_b, st["vb"], st["xb"], po, bo, toi, h)
             return X1p, BQ1, tp, tb
 
         def geometry(X1, tp, tb):
@@ -1048,27 +1060,37 @@ class ImpulseCollisionHandler:
             taped = active  # the set whose solve the tape holds (the first trial's)
             tape = active_tape()
             changes = self._staging.empty("active_changes", 1, wp.int32)
+
+            def repair(solved, active):
+                """The repaired set after the trial ``solved`` of ``active`` and how many contacts
+                it changes (:func:`kernels.contact_set.active_set_update_kernel`)."""
+                vp_t, vb_t, normal_t = solved[:3]
+                repaired = take(C, wp.int32, zero=False, grad=False)
+                launch("r_active_update", active_set_update_kernel, 1, [
+                    C, cs.vertices, cs.weights, cs.normals, cs.targets, cs.collided, mobile, active, normal_t,
+                    R.vertex_type, R.vertex_owner, L0, vp_t if P else R.empty_vec, vb_t if B else R.empty_twist,
+                    float(tol), float(collided_tol), float(ACTIVE_SET_PULLING),
+                    self._staging.empty("active_jn", C, wp.float64), repaired, changes])
+                return repaired, int(host(changes)[0])
+
+            collided_tol = APPROACH_EPS * self._sep_speed if C <= ACTIVE_SET_COLLIDED_MAX_CONTACTS else tol
             for iteration in range(ACTIVE_SET_ITERATIONS):
                 share = self._friction_share(active) if mu > 0 else None
                 # the first trial is recorded (usually it is the final one); repair trials stay off
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    vp_d, vb_d, normal, moving = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b,
-                                                         share)
+                    solved = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
                 if iteration == 0:
-                    recorded = (vp_d, vb_d, normal, moving)
-                repaired = take(C, wp.int32, zero=False, grad=False)
-                launch("r_active_update", active_set_update_kernel, 1, [
-                    C, cs.vertices, cs.weights, cs.normals, cs.targets, mobile, active, normal, R.vertex_type,
-                    R.vertex_owner, L0, vp_d if P else R.empty_vec, vb_d if B else R.empty_twist, float(tol),
-                    float(ACTIVE_SET_PULLING), self._staging.empty("active_jn", C, wp.float64), repaired, changes])
-                if not int(host(changes)[0]):
+                    recorded = solved
+                repaired, n_changes = repair(solved, active)
+                if not n_changes:
                     break
                 if iteration == ACTIVE_SET_ITERATIONS - 1:
                     self.unsettled_active_sets += 1
                     break  # the last trial's set stands, taped or not: one forward function
                 active = repaired
                 self.active_set_repairs += 1
+            vp_d, vb_d, normal, moving = solved
             if tape is not None and active is not taped and self._flags_differ(taped, active, C):
                 # the replay of the final active set, recorded
                 share = self._friction_share(active) if mu > 0 else None

@@ -1443,6 +1443,26 @@ def outside_cone_kernel(
         wp.atomic_add(count, 0, 1)
 
 
+@wp.kernel(enable_backward=False)
+def push_overshoot_kernel(
+    matrix: wp.array2d(dtype=wp.float64),
+    rhs: wp.array(dtype=wp.float64),
+    solution: wp.array(dtype=wp.float64),
+    limit: wp.float64,
+    count: wp.array(dtype=wp.int32),
+):
+    """Counts the push's unknowns whose impulse alone changes its own row's velocity
+    (``|lambda_i| A_ii``) by more than ``limit`` times the largest push asked for (``rhs``): a
+    decision (the push system's rows are near-copies asking for different pushes, and its
+    impulses cancel each other at a large scale). Launched with one thread per unknown."""
+    i = wp.tid()
+    largest = wp.float64(0.0)
+    for k in range(rhs.shape[0]):
+        largest = wp.max(largest, wp.abs(rhs[k]))
+    if wp.abs(solution[i]) * matrix[i, i] > limit * largest:
+        wp.atomic_add(count, 0, 1)
+
+
 @wp.kernel
 def add_vectors_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     """``out = a + b`` (the normal impulses of a solve and of its refinement)."""
@@ -1630,11 +1650,13 @@ def time_of_impact_kernel(
     x_pred: wp.array(dtype=wp.vec3d),
     particle_v_minus: wp.array(dtype=wp.vec3d),
     particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_v_moving: wp.array(dtype=wp.vec3d),
     particle_contact: wp.array(dtype=wp.int32),
     q0: wp.array(dtype=wp.transformd),
     q_pred: wp.array(dtype=wp.transformd),
     body_v_minus: wp.array(dtype=wp.spatial_vectord),
     body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_v_moving: wp.array(dtype=wp.spatial_vectord),
     body_contact: wp.array(dtype=wp.int32),
     toi: wp.array(dtype=wp.float64),
     h: wp.float64,
@@ -1644,16 +1666,21 @@ def time_of_impact_kernel(
     """Time-of-impact integration of particle ``tid`` (first ``particle_count`` threads;
     :func:`time_of_impact_position`) and of body ``tid - particle_count``
     (:func:`time_of_impact_pose`) with the ``t*`` of its earliest contact row (-1: no contact,
-    the prediction stays; -2: impact zone, its rigid motion from ``t* = 0``)."""
+    the prediction stays; -2: impact zone, its rigid motion from ``t* = 0``), plus the push:
+    the moving velocities' excess over ``v+`` (``v_moving - v+``, the separation restored at
+    the position level) as a displacement over the whole substep ``h``, whatever ``t*`` is (a
+    contact found at the end of the substep still ends separated: ending it touching would
+    leave the next substep no side to push it to)."""
     i = wp.tid()
     if i < particle_count:
         k = particle_contact[i]
         if k == -1:
             x1[i] = x_pred[i]
         elif k == -2:
-            x1[i] = x0[i] + h * particle_v_plus[i]
+            x1[i] = x0[i] + h * particle_v_moving[i]
         else:
-            x1[i] = time_of_impact_position(x0[i], particle_v_minus[i], particle_v_plus[i], toi[k], h)
+            x1[i] = time_of_impact_position(x0[i], particle_v_minus[i], particle_v_plus[i], toi[k], h) + h * (
+                particle_v_moving[i] - particle_v_plus[i])
         return
     b = i - particle_count
     kb = body_contact[b]
@@ -1663,7 +1690,10 @@ def time_of_impact_kernel(
     ts = wp.float64(0.0)
     if kb >= 0:
         ts = toi[kb]
-    q1[b] = time_of_impact_pose(q0[b], body_v_minus[b], body_v_plus[b], ts, h)
+    pose = time_of_impact_pose(q0[b], body_v_minus[b], body_v_plus[b], ts, h)
+    push = body_v_moving[b] - body_v_plus[b]
+    q1[b] = wp.transformd(wp.transform_get_translation(pose) + h * wp.spatial_bottom(push),
+                          quat_turn(wp.transform_get_rotation(pose), wp.spatial_top(push), h))
 
 
 @wp.func

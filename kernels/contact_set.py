@@ -413,6 +413,7 @@ def add_contacts_kernel(
     contact_normals: wp.array(dtype=wp.vec3d),
     contact_targets: wp.array(dtype=wp.float64),
     contact_timed: wp.array(dtype=wp.int32),
+    contact_collided: wp.array(dtype=wp.int32),
     normal_impulse: wp.array(dtype=wp.float64),
     friction_impulse: wp.array(dtype=wp.vec3d),
     count: wp.array(dtype=wp.int32),
@@ -427,8 +428,9 @@ def add_contacts_kernel(
     pairs are appended in the hits' order on every device. A hit whose pair is in the set
     (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
     the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
-    larger target; a new pair is appended with zero accumulated impulses. ``count[0]``: the rows
-    after the call.
+    larger target; a new pair is appended with zero accumulated impulses. ``collided``: 1 for the
+    rows a CCD round's hit reached (``all_new == 0``), 0 for the proximity pass's. ``count[0]``:
+    the rows after the call.
 
     With ``record_merge`` the decisions the taped replay repeats
     (:func:`kernels.contact.merge_contacts_kernel`) are written per row of the grown set:
@@ -479,6 +481,7 @@ def add_contacts_kernel(
                 contact_timed[r] = wp.int32(timed)
             if targets[h] > contact_targets[r]:
                 contact_targets[r] = targets[h]
+            contact_collided[r] = wp.int32(1)
         else:
             r = n
             n = n + 1
@@ -490,6 +493,7 @@ def add_contacts_kernel(
             contact_normals[r] = normals[h]
             contact_targets[r] = targets[h]
             contact_timed[r] = wp.int32(timed)
+            contact_collided[r] = wp.int32(1 - all_new)
             normal_impulse[r] = zero
             friction_impulse[r] = wp.vec3d(zero, zero, zero)
             if record_merge != 0:
@@ -673,6 +677,7 @@ def active_set_update_kernel(
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
     targets: wp.array(dtype=wp.float64),
+    collided: wp.array(dtype=wp.int32),
     mobile: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
     normal: wp.array(dtype=wp.vec3d),
@@ -682,6 +687,7 @@ def active_set_update_kernel(
     particle_qd: wp.array(dtype=wp.vec3d),
     body_qd: wp.array(dtype=wp.spatial_vectord),
     tolerance: wp.float64,
+    collided_tolerance: wp.float64,
     pulling: wp.float64,
     normal_scratch: wp.array(dtype=wp.float64),
     repaired: wp.array(dtype=wp.int32),
@@ -691,8 +697,10 @@ def active_set_update_kernel(
     largest normal impulse first): an active contact whose normal impulse ``normal . n`` pulls
     (below ``-pulling`` times the largest magnitude) leaves the set; an inactive one that moves
     something and whose normal relative velocity after the solve (``particle_qd``, ``body_qd``)
-    is below its target by more than ``tolerance`` joins it. ``repaired``: the new set;
-    ``changes[0]``: how many contacts changed."""
+    is below its target by more than ``tolerance`` (``collided_tolerance`` for the rows a CCD hit
+    reached: their primitives meet within the substep, so the least approach left would be a
+    hit of the next CCD round again) joins it. ``repaired``: the new set; ``changes[0]``: how
+    many contacts changed."""
     zero = wp.float64(0.0)
     largest = zero
     for c in range(count):
@@ -713,7 +721,10 @@ def active_set_update_kernel(
             vrel = wp.vec3d(zero, zero, zero)
             for s in range(4):
                 vrel = vrel + w[s] * vertex_velocity(q[s], vertex_type, vertex_owner, lever, particle_qd, body_qd)
-            if wp.dot(vrel, normals[c]) < targets[c] - tolerance:
+            tol = tolerance
+            if collided[c] != 0:
+                tol = collided_tolerance
+            if wp.dot(vrel, normals[c]) < targets[c] - tol:
                 new = 1
         repaired[c] = new
         if new != a:

@@ -70,7 +70,8 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
     wp.launch(add_contacts_kernel, 1, [
         H.count, 0, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
         H.targets, wp.zeros(16, dtype=wp.int32, device=DEV), cs.count, 1, cs.kind, cs.pair, cs.vertices, cs.toi,
-        cs.weights, cs.normals, cs.targets, cs.timed, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge],
+        cs.weights, cs.normals, cs.targets, cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse,
+        cs.counter, *merge],
         device=DEV)
     cs.count = int(cs.counter.numpy()[0])
     assert cs.count == 3
@@ -79,6 +80,7 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
     np.testing.assert_array_equal(cs.host("targets"), [0.1, 0.9, 0.2])
     np.testing.assert_array_equal(cs.host("weights"), [w_old[0], w_new[0], w_new[1]])
     np.testing.assert_array_equal(cs.host("timed"), [0, 1, 0])  # source 1 (a root) is differentiated, 4 not
+    np.testing.assert_array_equal(cs.host("collided"), [0, 1, 1])  # the rows this CCD round's hits reached
     np.testing.assert_array_equal(cs.host("normal_impulse"), [2.0, 3.0, 0.0])
     np.testing.assert_array_equal(cs.host("friction_impulse")[:, 0], [0.1, 0.1, 0.0])
     np.testing.assert_array_equal(merge[0].numpy()[:3], [-1, 0, 1])  # the hit each row takes
@@ -223,8 +225,8 @@ def test_proximity_hits_repeating_a_rigid_constraint_join_once():
         wp.launch(add_contacts_kernel, 1, [
             H.count, 1, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
             H.targets, wp.array(np.full(16, vertex_type, np.int32), dtype=wp.int32, device=DEV), 0, 1, cs.kind,
-            cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed, cs.normal_impulse,
-            cs.friction_impulse, cs.counter, *merge], device=DEV)
+            cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed, cs.collided,
+            cs.normal_impulse, cs.friction_impulse, cs.counter, *merge], device=DEV)
         count = int(cs.counter.numpy()[0])
         assert count == expected, (vertex_type, count)
         if vertex_type == 1:
