@@ -294,6 +294,7 @@ def respond_plane_contacts(
     restitution: wp.float64,
     friction: wp.float64,
     thickness: wp.float64,
+    gravity: wp.vec3d,
     dt: wp.float64,
     x_out: wp.array(dtype=wp.vec3d),
     v_out: wp.array(dtype=wp.vec3d),
@@ -302,15 +303,22 @@ def respond_plane_contacts(
 
     Without contact: ``x1 = x0 + dt v``. With contact: ``t* = clamp((off - n.x0) / n.v, 0, dt)``
     on the straight path of the predicted velocity ``v``; the normal velocity is reflected as it
-    is *at* ``t*`` (the forces' change ``v - v_start`` of the substep split at ``t*``: the part
-    before the impact is reflected, the part after it is added afterwards, and the result is
-    not let point into the plane), for the part of the change that points into the plane,
-    ``c = min(n.(v - v_start), 0)``: ``v+_n = max(-e min(n.v_start + c t*/dt, 0) + c (1 - t*/dt), 0)``. Reflecting all of ``v``
-    instead made the bounce depend on whether it falls at the end of one substep or the start of
-    the next (gravity's ``g dt`` reflected or not: a jump of ``2 g dt`` in the velocity, 1.6 cm
-    in a bank shot's end point). The tangential part ``v_t`` loses at most ``mu`` times the
-    normal velocity change (Coulomb, clamped at sticking); ``x1 = x0 + t* v + (dt - t*) v+``.
-    One impact per substep (the earliest plane).
+    is *at* ``t*`` and the forces' change after ``t*`` is added afterwards (the result not let
+    point into the plane), for the part of the change that points into the plane,
+    ``c = min(n.(v - v_start), 0)``. Semi-implicit Euler's stored velocity is the one of the
+    middle of the substep before: under a constant force its positions lie on the exact path
+    whose velocity at ``t`` is the stored one at ``t + dt/2``. So gravity's inward part
+    ``g_n = min(n.g dt, 0)`` (the constant force; springs are left as they are) enters the
+    velocity at ``t*`` over half a substep more, ``v_n(t*) = n.v_start + c t*/dt + g_n / 2``,
+    and a bouncing particle (``e > 0``) stores the velocity after the impact less that half
+    substep of gravity, ``v+_n = max(-e min(v_n(t*), 0) + c (1 - t*/dt) - g_n / 2, 0)``: with
+    ``x1 = x0 + t* v + (dt - t*) v+`` the bounce of a free particle under gravity is exact (an
+    apex ratio of ``e^2`` to 1e-5 at 8 substeps of 1/60 s; without the half substep it was
+    ``g dt (1 + e) / (e v)`` low, 1.4 %). An inelastic impact (``e = 0``) leaves the particle
+    resting on the plane, ``v+_n = max(c (1 - t*/dt), 0) = 0``. Reflecting all of ``v`` instead
+    made the bounce depend on whether it falls at the end of one substep or the start of the
+    next. The tangential part ``v_t`` loses at most ``mu`` times the normal velocity change
+    (Coulomb, clamped at sticking). One impact per substep (the earliest plane).
     """
     i = wp.tid()
     xi = x0[i]
@@ -330,8 +338,12 @@ def respond_plane_contacts(
     # (gravity on a floor); an outward one (springs lifting a resting cloth) is left out of the
     # reflection: adding it after the impact let a resting, inelastic cloth hop on the ground
     change_n = wp.min(wp.dot(n, vi - v_start[i]), f64(0.0))
-    vn_at = wp.dot(n, v_start[i]) + change_n * (toi / dt)
-    vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + change_n * (f64(1.0) - toi / dt), f64(0.0))
+    half_gravity = f64(0.5) * wp.min(wp.dot(n, gravity) * dt, f64(0.0))
+    after = change_n * (f64(1.0) - toi / dt)
+    vn_at = wp.dot(n, v_start[i]) + change_n * (toi / dt) + half_gravity
+    vn_plus = wp.max(after, f64(0.0))
+    if restitution > f64(0.0):
+        vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
     vt = vi - n * vn
     jn = vn_plus - vn  # normal velocity change, >= 0
     vt_len = wp.length(vt)

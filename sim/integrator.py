@@ -304,7 +304,8 @@ class SemiImplicitIntegrator:
         wp.launch(
             respond_plane_contacts,
             dim=m.particle_count,
-            inputs=[x0, v_start, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness, hd],
+            inputs=[x0, v_start, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness,
+                    wp.vec3d(*np.asarray(m.gravity, dtype=np.float64)), hd],
             outputs=[x_out, v_out],
             device=d,
         )

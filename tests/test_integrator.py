@@ -464,8 +464,8 @@ def test_cloth_directional_gradient_springs_and_planes():
     grad_ke = model.spring_stiffness.grad.numpy()
     # model.state() inside the tape is a recorded clone: the gradient lands in the Model's array
     grad_v = model.particle_qd.grad.numpy()
-    bounced = states[-1].particle_q.numpy()[:, 2].min()
-    assert bounced < 0.46  # some particles reached the plane
+    lowest = min(s.particle_q.numpy()[:, 2].min() for s in states)
+    assert lowest < 0.46  # some particles reached the plane (at 0.45) and bounced
 
     def loss(eps_ke, eps_v):
         final = run(build(eps_ke * d_ke, eps_v * d_v, False), False)[-1].particle_q.numpy()
