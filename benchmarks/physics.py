@@ -1125,7 +1125,8 @@ def markdown(records: Sequence[Record], quick: bool) -> list[str]:
         f"Mode: {'quick (8 substeps; shorter runs where the variant says so)' if quick else 'full'}; dt = 1/60 s, "
         "thickness 1 mm, boxes of half extent 0.1 m (0.05 m for the dropped box) at 500 kg/m^3, gravity "
         "(0, 0, -9.81) m/s^2 unless the check says otherwise. Responses: gauss_seidel = "
-        "ImpulseCollisionHandler(differentiable=False), replayed = differentiable=True (what rollout uses). "
+        "ImpulseCollisionHandler(differentiable=False), replayed = differentiable=True (the default, and what "
+        "rollout uses). "
         "Tolerance: absolute, or relative ('rel') to the expected value. The tolerances are targets; "
         "a FAIL is a finding about the simulator.",
         "",

@@ -48,7 +48,7 @@ def test_simulator_quick_start_is_one_step_of_free_fall():
 def test_rollout_example_optimises_a_bounce_to_a_target(monkeypatch):
     """"Differentiable rollout" block: Adam on a particle's initial velocity so that, after
     bouncing off a tilted box, it ends at a target: every iterate bounces (as the comment says),
-    the first loss is > 0.2 m^2 and the last < 1e-4 m^2 (the comment says 0.26 -> 1e-5). The
+    the first loss is > 0.2 m^2 and the last < 1e-4 m^2 (the comment says 0.26 -> 4e-5). The
     block runs as written, with one line appended to its loop that records the loss."""
     import sim.rollout
 

@@ -142,14 +142,21 @@ def test_scene_scaled(module, scale, unscaled):
     assert summary["energy_finite"]
     assert summary["contacts"] > 0
     # the same motion, scaled: positions / scale match the unscaled run. Not to rounding: the
-    # response makes discrete choices (which pairs are in contact, when the Gauss-Seidel sweeps
-    # stop), and rounding differences of the scaled numbers can flip one of them; measured after
-    # 60 steps: cloth_drop 1e-10, rigid_toss 6e-11, cloth_rigid 2.4e-6 (ball rolling on cloth)
+    # response makes discrete choices (which pairs are in contact, which are active), and
+    # rounding differences of the scaled numbers can flip one of them. rigid_toss and
+    # cloth_rigid: measured after 60 steps 6e-11 and 2.4e-6. cloth_drop's landing amplifies
+    # rounding by far more than that: every initial position moved by 1e-15 m ends 3e-2..6e-2 m
+    # apart pointwise after 60 steps, its centroid 1e-3 m apart (the noise floor, measured);
+    # there the scaled run must agree within the floor: centroid 1e-2 m, pointwise 0.2 m
     extent = 1.0  # every scene is about a metre across
+    noisy = module is cloth_drop
     for key, cols in (("particle_q", slice(None)), ("body_q", slice(0, 3))):
         a = final[key][:, cols] / scale
         ref = base[key][:, cols]
-        if a.size:
+        if a.size and noisy:
+            assert np.max(np.abs(a.mean(axis=0) - ref.mean(axis=0))) < 1e-2 * extent
+            assert np.max(np.abs(a - ref)) < 0.2 * extent, (key, np.max(np.abs(a - ref)))
+        elif a.size:
             assert np.max(np.abs(a - ref)) < 1e-4 * extent, (key, np.max(np.abs(a - ref)))
 
 
