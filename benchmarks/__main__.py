@@ -1,6 +1,6 @@
 """One command for every benchmark: ``python -m benchmarks`` (quick, minutes) or ``--full``.
 
-    python -m benchmarks [--full] [--only roots,ccd,sim,gradients,trade,physics] [--out-dir benchmarks/results]
+    python -m benchmarks [--full] [--only roots,ccd,sim,gradients,trade,physics,convergence] [--out-dir benchmarks/results]
 
 Run from the repository root after ``make test`` (which builds ``.venv``):
 ``.venv/bin/python -m benchmarks``. Each benchmark prints its tables and writes
@@ -21,6 +21,9 @@ measured in the same run as its peer. The sections:
   setting (:mod:`benchmarks.trade`);
 * ``physics``: the physics validation suite, classic checks against closed forms for both
   collision responses (:mod:`benchmarks.physics`; quick: 8 substeps, full: 4, 8, 16 and 32);
+* ``convergence``: error against closed forms (ballistic flight, a bounce, sliding to rest, an
+  elastic hit on a free box, free rotation) as the substeps double, with the fitted order
+  (:mod:`benchmarks.convergence`; quick: 8, 16 and 32 substeps, full: 4 to 64);
 * ``--full`` adds ``grazing`` (gradients across a grazing contact, plot), ``implicit``
   (implicit-integrator accuracy), ``rollout`` (time and memory of long rollouts) and ``inverse``
   (the inverse scenes over seeds, against CMA-ES and Newton).
@@ -45,7 +48,7 @@ sys.path.insert(0, ROOT)
 
 from benchmarks import report  # noqa: E402
 
-QUICK = ("roots", "ccd", "sim", "gradients", "trade", "physics")
+QUICK = ("roots", "ccd", "sim", "gradients", "trade", "physics", "convergence")
 FULL = QUICK + ("grazing", "implicit", "rollout", "inverse")
 
 
@@ -101,6 +104,10 @@ def section(name: str, full: bool, out_dir: str) -> None:
         from benchmarks import physics
 
         physics.main(([] if full else ["--quick"]) + ["--out-dir", out_dir])
+    elif name == "convergence":
+        from benchmarks import convergence
+
+        convergence.main(([] if full else ["--quick"]) + ["--out", out])
     elif name == "grazing":
         from benchmarks import grazing
 

@@ -221,15 +221,17 @@ class Run:
         substeps: substeps per step.
         dt: step [s].
         particle_qd: optional initial particle velocities (P, 3) replacing the model's.
+        exact_gravity: the semi-implicit integrator's exact ballistic update.
     """
 
-    def __init__(self, builder, response: str, substeps: int, dt: float = DT, particle_qd=None) -> None:
+    def __init__(self, builder, response: str, substeps: int, dt: float = DT, particle_qd=None,
+                 exact_gravity: bool = False) -> None:
         from collision.response import ImpulseCollisionHandler
         from sim.integrator import make_integrator
 
         differentiable = _check_response(response)
         self.model = builder.finalize()
-        self.integrator = make_integrator(self.model)
+        self.integrator = make_integrator(self.model, exact_gravity=exact_gravity)
         self.handler = ImpulseCollisionHandler(self.model, differentiable=differentiable)
         self.integrator.collision_handler = self.handler
         self.state, self.next = self.model.state(), self.model.state()

@@ -15,6 +15,11 @@ import warp as wp
 
 from collision.buffers import host
 
+
+class ContactLimitExceeded(RuntimeError):
+    """A substep's contacts went past a named limit (hits per collision vertex, or unknowns of
+    the exact impulse solve): the substep is far too long for the motion."""
+
 _CONTACT_FIELDS = (("kind", wp.int32), ("pair", wp.vec2i), ("vertices", wp.vec4i), ("toi", wp.float64),
                    ("weights", wp.vec4d), ("normals", wp.vec3d), ("targets", wp.float64), ("timed", wp.int32),
                    ("collided", wp.int32), ("normal_impulse", wp.float64), ("friction_impulse", wp.vec3d))

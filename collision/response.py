@@ -78,7 +78,7 @@ import warp as wp
 from collision.broad_phase import BroadPhase
 from collision.buffers import RecordedLaunches, Staging, copy_rows, host, zero
 from collision.ccd import ONES3, CandidateNarrowPhase
-from collision.contacts import Contacts, Hits
+from collision.contacts import ContactLimitExceeded, Contacts, Hits
 from kernels.variants import check_settings as check_ccd_settings
 from collision.mesh import VERTEX_BODY as _BODY
 from collision.mesh import VERTEX_PARTICLE as _PARTICLE
@@ -213,6 +213,14 @@ ACTIVE_SET_PULLING = 1e-9
 """An active contact leaves the replayed response's active set when its exact normal impulse is
 below ``-ACTIVE_SET_PULLING`` times the largest one (it pulls; rounding of a zero impulse stays
 above)."""
+
+
+MAX_HITS_PER_VERTEX = 8
+"""A substep whose narrow phase finds more hits than this many per collision vertex (at least
+:data:`MAX_HITS_MIN`) stops with :class:`ContactLimitExceeded`: a resting cloth has about one
+per vertex, and tens of thousands of hits mean a substep far too long for the motion (every
+triangle sweeping across the scene), whose exact solve would take minutes."""
+MAX_HITS_MIN = 4096
 
 
 class _CallContacts:
@@ -395,6 +403,7 @@ class ImpulseCollisionHandler:
         self.shape_body = mesh.shape_body
         self.static_vertices = mesh.static_vertices
         self.n_vertices = mesh.vertex_count
+        self.max_hits = max(MAX_HITS_MIN, MAX_HITS_PER_VERTEX * (self.n_vertices + int(m.plane_count) * self.n_particles))
         self.faces, self.edges = mesh.faces, mesh.feature_edges
         # broad-phase groups: the particles (self-collision only with "self_collision"), each
         # body (never with itself), the static meshes (never with each other)
@@ -728,6 +737,10 @@ class ImpulseCollisionHandler:
             mesh_count, nb["kind"], nb["pairs"], nb["offset"], float(max_distance), self._plane_pairs_w,
             self._key_base, H.keys, H.order, self._kept_counter])
         kept = int(host(self._kept_counter)[0])
+        if kept > self.max_hits:
+            raise ContactLimitExceeded(
+                f"{kept} contacts in one substep, more than the limit of {self.max_hits} ({MAX_HITS_PER_VERTEX} per "
+                f"collision vertex): the substep is far too long for the motion")
         if self._hits.device.is_cpu or total <= DEVICE_SORT_MIN:
             launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
         else:

@@ -58,10 +58,14 @@ def integrate_particles(
     inv_mass: wp.array(dtype=wp.float64),
     gravity: wp.vec3d,
     dt: wp.float64,
+    drift: wp.vec3d,
     x_out: wp.array(dtype=wp.vec3d),
     v_out: wp.array(dtype=wp.vec3d),
 ):
-    """Semi-implicit Euler for particle ``tid``: ``v1 = v0 + dt (f w + g)``, ``x1 = x0 + dt v1``."""
+    """Semi-implicit Euler for particle ``tid``: ``v1 = v0 + dt (f w + g)``,
+    ``x1 = x0 + dt v1 + drift``. ``drift`` is zero, or ``-dt^2 g / 2`` for the exact ballistic
+    update: the springs' kick followed by the exact flow of free flight under gravity
+    (``x0 + dt (v0 + dt f w) + dt^2 g / 2``; still symplectic, exact for free flight)."""
     i = wp.tid()
     w = inv_mass[i]
     if w == f64(0.0):
@@ -69,7 +73,7 @@ def integrate_particles(
         v_out[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
         return
     v1 = v[i] + (f[i] * w + gravity) * dt
-    x_out[i] = x[i] + v1 * dt
+    x_out[i] = x[i] + v1 * dt + drift
     v_out[i] = v1
 
 
@@ -166,10 +170,12 @@ def integrate_bodies(
     inv_inertia: wp.array(dtype=wp.mat33d),
     gravity: wp.vec3d,
     dt: wp.float64,
+    drift: wp.vec3d,
     body_q_out: wp.array(dtype=wp.transformd),
     body_qd_out: wp.array(dtype=wp.spatial_vectord),
 ):
-    """Rigid body ``tid``; ``body_f`` is the world wrench (torque about the COM, force).
+    """Rigid body ``tid``; ``body_f`` is the world wrench (torque about the COM, force);
+    ``drift`` as in :func:`integrate_particles`.
 
     A body with ``inv_mass == 0`` keeps its centre of mass (zero linear velocity, no gravity);
     one with zero ``inv_inertia`` keeps its orientation (zero angular velocity). The angular part
@@ -189,9 +195,11 @@ def integrate_bodies(
     # linear: semi-implicit Euler of the centre of mass
     m_inv = inv_mass[b]
     v1 = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
+    p1 = p0
     if m_inv > f64(0.0):
         v1 = v0 + (force * m_inv + gravity) * dt
-    p1 = p0 + v1 * dt
+        # drift: zero, or -dt^2 g / 2 for the exact ballistic update (integrate_particles)
+        p1 = p0 + v1 * dt + drift
 
     # angular: kick L = I_w(q0) w0 + dt tau, then the free rotation (c h/2, a h, c h/2, |L|^2 h)
     I_inv_b = inv_inertia[b]
@@ -296,12 +304,17 @@ def respond_plane_contacts(
     thickness: wp.float64,
     gravity: wp.vec3d,
     dt: wp.float64,
+    drift: wp.vec3d,
     x_out: wp.array(dtype=wp.vec3d),
     v_out: wp.array(dtype=wp.vec3d),
 ):
     """Time-of-impact integration of particle ``tid`` against ``planes[plane_index[tid]]``.
 
-    Without contact: ``x1 = x0 + dt v``. With contact: ``t* = clamp((off - n.x0) / n.v, 0, dt)``
+    Without contact: ``x1 = x0 + dt v + drift`` (``drift`` as in :func:`integrate_particles`).
+    With the exact ballistic update (``drift`` not zero) the stored velocity is the one at the
+    substep's end: the half substep of gravity below is left out and ``drift`` is added to the
+    time-of-impact position (under constant gravity that is the exact parabola through the
+    impact at ``t*``). With contact: ``t* = clamp((off - n.x0) / n.v, 0, dt)``
     on the straight path of the predicted velocity ``v``; the normal velocity is reflected as it
     is *at* ``t*`` and the forces' change after ``t*`` is added afterwards (the result not let
     point into the plane), for the part of the change that points into the plane,
@@ -325,7 +338,7 @@ def respond_plane_contacts(
     vi = v[i]
     k = plane_index[i]
     if k < 0:
-        x_out[i] = xi + vi * dt
+        x_out[i] = xi + vi * dt + drift
         v_out[i] = vi
         return
     p = planes[k]
@@ -339,6 +352,10 @@ def respond_plane_contacts(
     # reflection: adding it after the impact let a resting, inelastic cloth hop on the ground
     change_n = wp.min(wp.dot(n, vi - v_start[i]), f64(0.0))
     half_gravity = f64(0.5) * wp.min(wp.dot(n, gravity) * dt, f64(0.0))
+    if wp.length_sq(drift) > f64(0.0):
+        # the exact ballistic update stores the velocity at the substep's end, not its middle:
+        # no half substep of gravity, and the path's drift on top of the straight-line positions
+        half_gravity = f64(0.0)
     after = change_n * (f64(1.0) - toi / dt)
     vn_at = wp.dot(n, v_start[i]) + change_n * (toi / dt) + half_gravity
     vn_plus = wp.max(after, f64(0.0))
@@ -352,7 +369,7 @@ def respond_plane_contacts(
         vt_plus = vt * wp.max(f64(0.0), f64(1.0) - friction * jn / vt_len)
     v_plus = vt_plus + n * vn_plus
 
-    x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt)
+    x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt) + drift
     v_out[i] = v_plus
 
 
@@ -367,3 +384,33 @@ def inverse_masses(mass: wp.array(dtype=wp.float64), inv_mass: wp.array(dtype=wp
         inv_mass[i] = f64(1.0) / m
     else:
         inv_mass[i] = f64(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def outside_bounds_kernel(
+    particle_q: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_q: wp.array(dtype=wp.transformd),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    particle_count: int,
+    center: wp.vec3d,
+    radius: wp.float64,
+    flag: wp.array(dtype=wp.int32),
+):
+    """Divergence check (a decision, off the tape): sets ``flag[0] = 1`` when a particle's or a
+    body's position or velocity is not finite, or its position lies farther than ``radius`` [m]
+    from ``center`` [m]. Thread ``tid`` checks particle ``tid`` (``tid < particle_count``), else
+    body ``tid - particle_count``."""
+    tid = wp.tid()
+    if tid < particle_count:
+        x = particle_q[tid]
+        v = particle_qd[tid]
+        ok = wp.isfinite(x) and wp.isfinite(v)
+    else:
+        b = tid - particle_count
+        x = wp.transform_get_translation(body_q[b])
+        ok = wp.isfinite(x) and wp.isfinite(wp.transform_get_rotation(body_q[b])) and wp.isfinite(body_qd[b])
+    if not ok:
+        flag[0] = 1
+    elif wp.length(x - center) > radius:
+        flag[0] = 1

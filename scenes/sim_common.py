@@ -38,6 +38,7 @@ from scenes.registry import (
 )
 from sim.integrator import INTEGRATORS
 from sim.rotation import quat_to_matrix
+from sim.stability import SimulationDiverged  # the integrator's per-substep check raises it too
 
 PRECISIONS = ("float64",)
 """The simulator step is float64 throughout (the narrow phase that decides CCD contacts can run in
@@ -242,8 +243,6 @@ or exchanged with gravity, so that much kinetic energy means the explicit spring
 (substeps too long for their stiffness), not physics."""
 
 
-class SimulationDiverged(RuntimeError):
-    """The explicit integration blew up (see :data:`DIVERGENCE_FACTOR`)."""
 
 
 class EnergyMeter:
@@ -350,6 +349,8 @@ def simulate(
     *,
     name: str = "sim",
     progress: bool = True,
+    prepare: Callable[[Any], Any] | None = None,
+    observer: Callable[[int, Any, dict[str, Any]], None] | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Builds and runs a simulation scene.
 
@@ -360,21 +361,29 @@ def simulate(
         log: An open :class:`sim.logging.RerunLogger` to record into, or None (no recording).
         name: Scene name (progress bar label, summary).
         progress: Show a tqdm bar on stderr (only when stderr is a terminal).
+        prepare: ``prepare(model) -> model`` applied to the built model before the run (e.g. a
+            perturbation of its initial positions for a noise floor).
+        observer: ``observer(step, state, info)`` after every step (``step`` from 1), with
+            ``info`` holding ``kinetic`` and ``potential`` [J] and ``contacts`` (points, normals
+            and times of impact ``toi`` [s from the run's start] of the step's contacts).
 
     Returns:
         ``(summary, final_state)``: the JSON summary and the final state as numpy arrays.
     """
     from tqdm import tqdm
 
-    from collision.response import ImpulseCollisionHandler
+    from collision.response import ContactLimitExceeded, ImpulseCollisionHandler
     from sim.integrator import make_integrator
     from sim.penetration import PenetrationChecker
+    from sim.stability import DivergenceGuard, check_explicit_substep
 
     steps = int(args.steps) if getattr(args, "steps", None) is not None else DEFAULT_STEPS
     dt = float(getattr(args, "dt", DEFAULT_DT))
     substeps = int(getattr(args, "substeps", DEFAULT_SUBSTEPS))
 
     model = build_model(build, args)
+    if prepare is not None:
+        model = prepare(model)
     kind = getattr(args, "integrator", "semi_implicit")
     options = {}
     for flag, key in (("cg_tolerance", "tolerance"), ("max_strain_step", "max_strain_step"),
@@ -385,6 +394,11 @@ def simulate(
         if kind != "implicit":
             raise ValueError(f"--{flag.replace('_', '-')} applies to --integrator implicit only")
         options[key] = (value or None) if key == "max_strain_step" else value
+    flags = f"raise --substeps (now {substeps}), lower --dt (now {dt:g} s)"
+    if kind != "implicit":
+        refused = check_explicit_substep(model, dt / substeps)
+        if refused is not None:
+            raise SimulationDiverged(f"{name}: refused: {refused}: {flags} or use --integrator implicit")
     integrator = make_integrator(model, kind, **options)
     handler = ImpulseCollisionHandler(
         model, max_iterations=int(getattr(args, "collision_rounds", DEFAULT_COLLISION_ROUNDS)),
@@ -400,6 +414,7 @@ def simulate(
         recorder = SimRecorder.on_logger(log, model)
 
     state, nxt = model.state(), model.state()
+    integrator.divergence_guard = DivergenceGuard(model, state, steps * dt)
     k0, p0 = energy(state)
     e0 = k0 + p0
     divergence_limit = DIVERGENCE_FACTOR * energy.reference_scale(state, k0, p0)
@@ -423,7 +438,10 @@ def simulate(
         for k in range(steps):
             t0 = time.perf_counter()
             gatherer.reset()
-            integrator.step(state, nxt, dt, substeps)
+            try:
+                integrator.step(state, nxt, dt, substeps)
+            except (SimulationDiverged, ContactLimitExceeded) as exc:
+                raise SimulationDiverged(f"{name}: step {k + 1}: {exc}: {flags}") from None
             state, nxt = nxt, state
             step_times.append(time.perf_counter() - t0)
             contacts = gatherer.contacts()
@@ -440,6 +458,8 @@ def simulate(
                     f"(now {substeps}), lower --dt (now {dt:g} s) or use --integrator implicit"
                 )
             e_max = max(e_max, e) if math.isfinite(e) else e_max
+            if observer is not None:
+                observer(k + 1, state, {"kinetic": kin, "potential": pot, "contacts": contacts})
             rep = checker.check(state)
             max_pen = max(max_pen, rep.count)
             max_depth = max(max_depth, rep.max_depth)

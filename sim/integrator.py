@@ -45,6 +45,7 @@ from kernels.integrate import (
     respond_plane_contacts,
 )
 from sim.model import Model, State
+from sim.stability import DivergenceGuard, SimulationDiverged
 
 CollisionHandler = Callable[[State, State, float], "State | None"]
 
@@ -82,11 +83,22 @@ class SemiImplicitIntegrator:
         requires_grad: None (default) allocates fresh intermediate States per substep when the
             input State requires gradients and reuses scratch States otherwise; True always
             allocates (e.g. to differentiate w.r.t. model arrays only), False never does.
+        divergence_guard: optional :class:`sim.stability.DivergenceGuard`; with one, every
+            substep ends with its check and raises :class:`sim.stability.SimulationDiverged`
+            when a value is non-finite or a position left the scene's bounds.
+        substeps_done: substeps taken over the integrator's life.
+        exact_gravity: False (default): semi-implicit Euler, ``x1 = x0 + h v1``, first order in
+            free flight; True: the exact ballistic update, ``x1 = x0 + h v1 - h^2 g / 2`` (the
+            springs' kick, then the exact flow of free flight under gravity: symplectic, and
+            exact to rounding for ballistic motion).
     """
 
-    def __init__(self, model: Model, requires_grad: bool | None = None):
+    def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False):
+        if not isinstance(exact_gravity, bool):
+            raise ValueError(f"exact_gravity must be True or False, got {exact_gravity!r}")
         self.model = model
         self.requires_grad = requires_grad
+        self.exact_gravity = exact_gravity
         self.device = model.device
         self.collision_handler: CollisionHandler | None = None
         self.gravity = wp.vec3d(*(float(g) for g in np.asarray(model.gravity, dtype=np.float64)))
@@ -104,6 +116,8 @@ class SemiImplicitIntegrator:
         self._stages: dict[str, State] = {}
         self._scratch_forces = None
         self._scratch_plane_index = None
+        self.divergence_guard: DivergenceGuard | None = None
+        self.substeps_done = 0
 
     # ------------------------------------------------------------------ allocation
     def _new_state(self, requires_grad: bool) -> State:
@@ -179,6 +193,13 @@ class SemiImplicitIntegrator:
         return state_out
 
     def _substep(self, s_in: State, s_out: State, h: float, requires_grad: bool) -> None:
+        self._advance(s_in, s_out, h, requires_grad)
+        self.substeps_done += 1
+        guard = self.divergence_guard
+        if guard is not None and guard.exceeded(s_out):
+            raise SimulationDiverged(f"{guard.message()} (substep {self.substeps_done}, h = {h:.3g} s)")
+
+    def _advance(self, s_in: State, s_out: State, h: float, requires_grad: bool) -> None:
         m, d = self.model, self.device
         planes = m.particle_count > 0 and m.plane_count > 0
         handler = self.collision_handler
@@ -207,6 +228,7 @@ class SemiImplicitIntegrator:
                     m.body_inv_inertia,
                     self.gravity,
                     hd,
+                    self._drift(h),
                 ],
                 outputs=[pred.body_q, pred.body_qd],
                 device=d,
@@ -250,6 +272,11 @@ class SemiImplicitIntegrator:
             )
         return f
 
+    def _drift(self, h: float) -> wp.vec3d:
+        """The position correction of the exact ballistic update (zero without it)."""
+        c = -0.5 * h * h if self.exact_gravity else 0.0
+        return wp.vec3d(*(c * float(g) for g in self.gravity))
+
     def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> None:
         """Spring forces and semi-implicit Euler of the particles into ``pred``."""
         m = self.model
@@ -257,7 +284,8 @@ class SemiImplicitIntegrator:
         wp.launch(
             integrate_particles,
             dim=m.particle_count,
-            inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h)],
+            inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h),
+                    self._drift(h)],
             outputs=[pred.particle_q, pred.particle_qd],
             device=self.device,
         )
@@ -305,7 +333,7 @@ class SemiImplicitIntegrator:
             respond_plane_contacts,
             dim=m.particle_count,
             inputs=[x0, v_start, v, m.planes, idx, wp.float64(m.restitution), wp.float64(m.friction), thickness,
-                    wp.vec3d(*np.asarray(m.gravity, dtype=np.float64)), hd],
+                    wp.vec3d(*np.asarray(m.gravity, dtype=np.float64)), hd, self._drift(h)],
             outputs=[x_out, v_out],
             device=d,
         )
@@ -321,8 +349,11 @@ def check_integrator(kind: str, options: dict | None = None) -> None:
     (the implicit one's :data:`sim.implicit.OPTIONS`), before anything is built."""
     options = options or {}
     if kind == "semi_implicit":
-        if options:
-            raise ValueError(f"the semi_implicit integrator takes no options, got {sorted(options)}")
+        unknown = sorted(set(options) - {"exact_gravity"})
+        if unknown:
+            raise ValueError(f"the semi_implicit integrator's only option is exact_gravity, got {unknown}")
+        if not isinstance(options.get("exact_gravity", False), bool):
+            raise ValueError(f"exact_gravity must be True or False, got {options['exact_gravity']!r}")
     elif kind == "implicit":
         from sim.implicit import OPTIONS, check_options
 
@@ -337,10 +368,10 @@ def check_integrator(kind: str, options: dict | None = None) -> None:
 def make_integrator(model: Model, kind: str = "semi_implicit", requires_grad: bool | None = None,
                     **options) -> SemiImplicitIntegrator:
     """The integrator ``kind`` (one of :data:`INTEGRATORS`) for ``model``; ``options`` go to the
-    implicit one (:data:`sim.implicit.OPTIONS`)."""
+    implicit one (:data:`sim.implicit.OPTIONS`), or ``exact_gravity`` to the semi-implicit one."""
     check_integrator(kind, options)
     if kind == "implicit":
         from sim.implicit import ImplicitIntegrator
 
         return ImplicitIntegrator(model, requires_grad=requires_grad, **options)
-    return SemiImplicitIntegrator(model, requires_grad=requires_grad)
+    return SemiImplicitIntegrator(model, requires_grad=requires_grad, **options)

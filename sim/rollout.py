@@ -35,12 +35,14 @@ import numpy as np
 import torch
 import warp as wp
 
+from collision.contacts import ContactLimitExceeded
 from collision.response import ImpulseCollisionHandler, check_ccd_options
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from kernels.integrate import inverse_masses
 from sim.events import check_events, event_outputs
 from sim.integrator import SemiImplicitIntegrator, check_integrator, make_integrator
 from sim.model import Model, State
+from sim.stability import DivergenceGuard, SimulationDiverged
 
 UNMOLLIFIED_MAX_DERIVATIVE = 1e300
 """``max_derivative`` that turns the robust division off: the plain implicit derivative
@@ -179,8 +181,10 @@ class _Runner:
 
     def __init__(self, model: Model, steps: int, dt: float, substeps: int, checkpoint_every, collisions: bool,
                  max_derivative: float, integrator: str = "semi_implicit", integrator_options=None,
-                 ccd_options=None):
+                 ccd_options=None, on_divergence: str = "raise"):
         self.model = model
+        self.on_divergence = on_divergence
+        self.guard: DivergenceGuard | None = None
         self.ccd_options = ccd_options
         self.integrator = integrator
         self.integrator_options = dict(integrator_options or {})
@@ -194,10 +198,12 @@ class _Runner:
         self.params: dict[str, wp.array] = {}  # the parameter arrays whose gradients are wanted
         self.states: list[State] = []
         self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
-                      "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0}
+                      "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0,
+                      "diverged": False, "diverged_step": None}
 
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
         integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
+        integ.divergence_guard = self.guard
         if self.collisions:
             if self.handler is None:
                 self.handler = ImpulseCollisionHandler(self.model, differentiable=True, max_derivative=self.max_derivative,
@@ -264,13 +270,18 @@ class _Runner:
         states = [start]
         s = start
         spare = None if requires_grad else self.model.state()
-        for _ in range(first, last):
+        for k in range(first, last):
             if requires_grad:
                 # zeros, not model.state(): a clone would be recorded on the tape as a copy
                 s_next = integ._new_state(True)
             else:
                 s_next = spare
-            integ.step(s, s_next, self.dt, self.substeps)
+            try:
+                integ.step(s, s_next, self.dt, self.substeps)
+            except (SimulationDiverged, ContactLimitExceeded) as exc:
+                raise SimulationDiverged(
+                    f"rollout: step {k + 1} of {self.steps}: {exc}; use more substeps, a shorter dt or "
+                    f"integrator='implicit' (on_divergence='return' returns instead)") from None
             if record is not None:
                 record.append(s_next.numpy())
             if requires_grad:
@@ -288,8 +299,31 @@ class _Runner:
         self._set_parameters(particle_mass, spring_stiffness, mass_grad and requires_grad,
                              stiffness_grad and requires_grad)
         start = self._initial_state(particle_qd, body_qd, requires_grad and self.checkpoint_every is None)
+        self.guard = DivergenceGuard(self.model, start, self.steps * self.dt)
         record = [start.numpy()]
         self.segment_starts = {0: record[0]}
+        try:
+            self._forward_steps(start, record, requires_grad)
+        except SimulationDiverged:
+            if self.on_divergence != "return":
+                raise
+            # the frames from the diverged step on hold the last completed one; no gradient
+            self.stats["diverged"] = True
+            self.stats["diverged_step"] = len(record)
+            self.tape, self.states = None, []
+            record.extend([record[-1]] * (self.steps + 1 - len(record)))
+        if self.handler is not None:
+            self.stats["failsafe_substeps"] = self.handler.failsafe_count
+            self.stats["ccd_events"] = self.handler.ccd_events
+            self.stats["untaped_substeps"] = self.handler.untaped_substeps
+            self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
+            if self.handler.differentiable:
+                self.stats["largest_system"] = self.handler._replay.largest_system
+        return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
+
+    def _forward_steps(self, start: State, record: list, requires_grad: bool) -> None:
+        """Steps the whole rollout from ``start``, appending each step's host copy to ``record``
+        (taped, or in checkpointed segments whose starts are kept)."""
         if requires_grad and self.checkpoint_every is None:
             self.tape = wp.Tape()
             with self.tape:
@@ -306,14 +340,6 @@ class _Runner:
                     continue
                 # a fresh State for the next segment (the scratch ones are reused)
                 s = self._state_from(record[b], self.model, False)
-        if self.handler is not None:
-            self.stats["failsafe_substeps"] = self.handler.failsafe_count
-            self.stats["ccd_events"] = self.handler.ccd_events
-            self.stats["untaped_substeps"] = self.handler.untaped_substeps
-            self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
-            if self.handler.differentiable:
-                self.stats["largest_system"] = self.handler._replay.largest_system
-        return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
 
     @staticmethod
     def _seed(arr: wp.array, grad: np.ndarray) -> None:
@@ -328,6 +354,9 @@ class _Runner:
 
         The parameters are shared by all segments: their adjoints are read after each
         segment's backward pass and summed (each segment's tape is zeroed before the next)."""
+        if self.stats["diverged"]:
+            raise RuntimeError(f"rollout diverged at step {self.stats['diverged_step']} (on_divergence='return'): "
+                               f"it has no gradient")
         names = ("particle_q", "particle_qd", "body_q", "body_qd")
         for arr in self.params.values():
             if arr.shape[0]:
@@ -425,6 +454,7 @@ def rollout(
     particle_mass: torch.Tensor | None = None,
     spring_stiffness: torch.Tensor | None = None,
     ccd_options: dict | None = None,
+    on_divergence: str = "raise",
 ) -> RolloutResult:
     """Simulates ``steps`` steps of ``dt`` [s] (each split into ``substeps``) from the model's
     initial state, differentiably.
@@ -468,6 +498,14 @@ def rollout(
             ``tolerance``; see :class:`collision.response.ImpulseCollisionHandler`); None: the
             float64 kernels as written. Decisions only: the replayed ``t*`` and its derivative
             come from the float64 root solver either way.
+        on_divergence: what a diverged rollout does (a position or velocity not finite, or a
+            position farther than :data:`sim.stability.BOUNDS_FACTOR` times the scene's reach
+            from its centre, checked every substep; or a substep past the contact limits,
+            :class:`collision.contacts.ContactLimitExceeded`): "raise" (default) raises
+            :class:`sim.stability.SimulationDiverged` naming the step; "return" stops there and
+            returns with ``stats["diverged"] = True`` and ``stats["diverged_step"]`` (the first
+            step not completed), every later frame holding the last completed one; such a
+            result has no gradient (its backward raises).
 
     Either parameter replaces the model's array in a shallow copy of ``model`` (``model``
     itself is not changed). When it requires gradients, they flow through everything the
@@ -485,6 +523,7 @@ def rollout(
         ValueError: naming the argument, for wrong types, shapes, dtypes, non-finite values,
             negative masses or stiffnesses, masses that change which particles are pinned,
             ``steps < 1``, ``substeps < 1`` or ``dt <= 0``; before anything runs.
+        sim.stability.SimulationDiverged: when the rollout diverges (see ``on_divergence``).
     """
     steps, dt, substeps, particle_qd, body_qd, events = _check_args(
         model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative)
@@ -493,8 +532,10 @@ def rollout(
     check_integrator(integrator, integrator_options)
     ccd_options = check_ccd_options(ccd_options)
     particle_mass, spring_stiffness = _check_parameters(model, particle_mass, spring_stiffness)
+    if on_divergence not in ("raise", "return"):
+        raise ValueError(f"on_divergence must be 'raise' or 'return', got {on_divergence!r}")
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
-                     integrator_options, ccd_options)
+                     integrator_options, ccd_options, on_divergence)
     has_p, has_b = particle_qd is not None, body_qd is not None
     has_m, has_k = particle_mass is not None, spring_stiffness is not None
     p_in = particle_qd if has_p else torch.zeros((model.particle_count, 3), dtype=torch.float64)

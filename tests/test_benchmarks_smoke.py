@@ -61,6 +61,11 @@ def test_gradients_tiny(tmp_path):
     assert row["finite"] and row["contact_substeps"] == 0
     assert row["best_error"] < 1e-5, row["relative_error"]
     assert row["forward_ms_per_step"] > 0 and row["ratio"] > 0
+    # the horizon sweep: one horizon (3 steps) per substep setting, smooth before any contact
+    assert [(h["substeps"], h["steps"]) for h in res["horizons"]] == [(8, 3), (16, 3)]
+    for h in res["horizons"]:
+        assert h["finite"] and h["smooth"] and h["worst_error"] < 1e-5
+    assert [s["amplified_from"] for s in res["horizon_summary"]] == [None, None]
 
 
 def test_trade_tiny(tmp_path):
@@ -76,8 +81,15 @@ def test_trade_tiny(tmp_path):
     for r in rows:
         if r["diverged"] is None:
             assert r["ms_per_step"] > 0 and math.isfinite(r["deviation"]) and r["deviation"] >= 0
+            assert set(r["errors"]) == set(trade.OBSERVABLES) == set(r["within_noise"])
+            # within noise means at most the floor of that observable
+            floor = res["scenes"][0]["end_floor"]
+            assert all(r["errors"][o] <= floor[o] for o in trade.OBSERVABLES if r["within_noise"][o])
     assert sum(r["recommended"] for r in rows) <= 1
     assert all(r["acceptable"] for r in rows if r["pareto"])
+    scene = res["scenes"][0]
+    assert scene["observables"] == list(trade.OBSERVABLES)
+    assert [h["steps"] for h in scene["noise_floor"]] and all(h["spread"] >= 0 for h in scene["noise_floor"])
     assert [t["max_derivative"] for t in res["tunnel"]] == list(trade.CONFIGS["quick"]["max_derivatives"])
 
 

@@ -274,7 +274,7 @@ def test_torque_is_a_full_kick_of_the_world_angular_momentum():
     wp.launch(integrate_bodies, dim=1,
               inputs=[model.body_q, model.body_qd, wp.array([np.concatenate([tau, np.zeros(3)])], dtype=wp.spatial_vectord),
                       model.body_inv_mass, model.body_inertia, model.body_inv_inertia, wp.vec3d(0.0, 0.0, 0.0),
-                      wp.float64(h)],
+                      wp.float64(h), wp.vec3d(0.0, 0.0, 0.0)],
               outputs=[out_q, out_qd])
     R0, R1 = quat_to_matrix(q0[0, 3:]), quat_to_matrix(out_q.numpy()[0, 3:])
     L0 = R0 @ I_b @ R0.T @ w0
