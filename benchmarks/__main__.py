@@ -24,7 +24,8 @@ measured in the same run as its peer. The sections:
 * ``convergence``: error against closed forms (ballistic flight, a bounce, sliding to rest, an
   elastic hit on a free box, free rotation) as the substeps double, with the fitted order
   (:mod:`benchmarks.convergence`; quick: 8, 16 and 32 substeps, full: 4 to 64);
-* ``--full`` adds ``grazing`` (gradients across a grazing contact, plot), ``implicit``
+* ``--full`` adds ``extremes`` (settings at their extremes: each holds or fails with a clear
+  error inside a time limit, :mod:`benchmarks.extremes`), ``grazing`` (gradients across a grazing contact, plot), ``implicit``
   (implicit-integrator accuracy), ``rollout`` (time and memory of long rollouts) and ``inverse``
   (the inverse scenes over seeds, against CMA-ES and Newton).
 
@@ -49,7 +50,7 @@ sys.path.insert(0, ROOT)
 from benchmarks import report  # noqa: E402
 
 QUICK = ("roots", "ccd", "sim", "gradients", "trade", "physics", "convergence")
-FULL = QUICK + ("grazing", "implicit", "rollout", "inverse")
+FULL = QUICK + ("extremes", "grazing", "implicit", "rollout", "inverse")
 
 
 class _Tee(io.TextIOBase):
@@ -108,6 +109,10 @@ def section(name: str, full: bool, out_dir: str) -> None:
         from benchmarks import convergence
 
         convergence.main(([] if full else ["--quick"]) + ["--out", out])
+    elif name == "extremes":
+        from benchmarks import extremes
+
+        extremes.main(["--out", out])
     elif name == "grazing":
         from benchmarks import grazing
 

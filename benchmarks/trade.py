@@ -407,6 +407,7 @@ def _plot(results: list[dict[str, Any]], path: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     names = list(OBSERVABLES)
     fig, axes = plt.subplots(len(results), len(names), figsize=(3.6 * len(names), 3.2 * len(results)), squeeze=False)
@@ -427,6 +428,7 @@ def _plot(results: list[dict[str, Any]], path: str) -> None:
             ax.axhline(TOLERANCE, color="k", lw=0.8, ls=":")
             ax.set_xscale("log")
             ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # no overlapping minor labels
             ax.set_xlabel("ms per step")
             ax.set_title(f"{res['scene']}: {name}", fontsize=9)
         row_axes[0].set_ylabel(f"error at step {res['steps']}")

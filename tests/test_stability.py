@@ -189,3 +189,19 @@ def test_guard_flags_non_finite_and_far_positions():
     v[0, 2] = np.nan
     bad.particle_qd = wp.array(v, dtype=wp.vec3d, device="cpu")
     assert guard.exceeded(bad)
+
+
+@pytest.mark.parametrize("row, outcome", [("dt 1 s", "clear error"), ("stiffness x1e6", "clear error"),
+                                          ("mass ratio 1e6", "holds"), ("speed 1e3 m/s", "holds"),
+                                          ("scale 1e3", "holds")])
+def test_extremes_rows(row, outcome):
+    """A sample of the extremes table (``benchmarks/extremes.py``, every row there): each holds
+    (0 penetrations, energy peak <= 1.01x) or stops with a one-line clear error, in seconds."""
+    from benchmarks import extremes
+
+    start = time.perf_counter()
+    result = extremes.run_row(row)
+    assert result["outcome"] == outcome, result
+    if outcome == "clear error":
+        assert "--substeps" in result["message"] and "\n" not in result["message"]
+    assert time.perf_counter() - start < 60.0
