@@ -262,8 +262,13 @@ def noise_floor(reference: _Trace, members: list[_Trace], size: float, g: float,
     """The spread of the perturbed runs around the reference: per step, each observable's
     largest difference over the members; the pointwise spread's amplification over the
     perturbation, and its growth rate fitted where it rises."""
+    def largest(values):  # NaN (a member's first contact where the reference has none) is maximal noise
+        values = list(values)
+        return math.nan if any(math.isnan(v) for v in values) else max(values)
+
     per_step = [
-        {name: max(observable_errors(m, reference, k, size, g, dt)[name] for m in members) for name in OBSERVABLES}
+        {name: largest(observable_errors(m, reference, k, size, g, dt)[name] for m in members)
+         for name in OBSERVABLES}
         for k in range(1, steps + 1)
     ]
     spread = np.array([max(p["pointwise"], 1e-300) for p in per_step])
@@ -327,7 +332,7 @@ def scene_trade(name: str, config: dict[str, Any], progress) -> dict[str, Any]:
     floor = noise_floor(ref, members, size, g, dt, steps)
     end_floor = floor["per_step"][-1]
     # the observables that can tell settings apart: their floor below the tolerance
-    decisive = [o for o in OBSERVABLES if not (end_floor[o] > TOLERANCE)]
+    decisive = [o for o in OBSERVABLES if end_floor[o] <= TOLERANCE]  # a NaN floor is not
     rows = []
     for setting in grid:
         progress(f"{name}: {setting_label(setting)}")
@@ -348,8 +353,10 @@ def scene_trade(name: str, config: dict[str, Any], progress) -> dict[str, Any]:
                     for h in floor["noise_floor"] if h["spread"] <= TOLERANCE},
             )
             # error beyond the floor, per decisive observable, in units of the tolerance
-            row["score"] = max([0.0] + [(errors[o] if not row["within_noise"][o] else 0.0) / TOLERANCE
-                                        for o in decisive if math.isfinite(errors[o])])
+            # a NaN error (a first contact only one run made) is as bad as it gets
+            row["score"] = max([0.0] + [0.0 if row["within_noise"][o] else
+                                        (errors[o] / TOLERANCE if math.isfinite(errors[o]) else math.inf)
+                                        for o in decisive])
             gain = row["energy_gain"] if row["energy_gain"] is not None else 1.0
             row["acceptable"] = row["penetrations"] == 0 and gain <= ENERGY_GAIN_LIMIT
         else:

@@ -216,7 +216,7 @@ above)."""
 
 
 MAX_HITS_PER_VERTEX = 8
-"""A substep whose narrow phase finds more hits than this many per collision vertex (at least
+"""A collision round whose narrow phase finds more hits than this many per collision vertex (at least
 :data:`MAX_HITS_MIN`) stops with :class:`ContactLimitExceeded`: a resting cloth has about one
 per vertex, and tens of thousands of hits mean a substep far too long for the motion (every
 triangle sweeping across the scene), whose exact solve would take minutes."""
@@ -739,8 +739,8 @@ class ImpulseCollisionHandler:
         kept = int(host(self._kept_counter)[0])
         if kept > self.max_hits:
             raise ContactLimitExceeded(
-                f"{kept} contacts in one substep, more than the limit of {self.max_hits} ({MAX_HITS_PER_VERTEX} per "
-                f"collision vertex): the substep is far too long for the motion")
+                f"{kept} contacts in one collision round of a substep, more than the limit of {self.max_hits} "
+                f"({MAX_HITS_PER_VERTEX} per collision vertex): the substep is far too long for the motion")
         if self._hits.device.is_cpu or total <= DEVICE_SORT_MIN:
             launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
         else:

@@ -297,6 +297,7 @@ def respond_plane_contacts(
     x0: wp.array(dtype=wp.vec3d),
     v_start: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
+    inv_mass: wp.array(dtype=wp.float64),
     planes: wp.array(dtype=wp.vec4d),
     plane_index: wp.array(dtype=wp.int32),
     restitution: wp.float64,
@@ -338,7 +339,10 @@ def respond_plane_contacts(
     vi = v[i]
     k = plane_index[i]
     if k < 0:
-        x_out[i] = xi + vi * dt + drift
+        if inv_mass[i] > f64(0.0):
+            x_out[i] = xi + vi * dt + drift
+        else:  # pinned: never moved by the drift
+            x_out[i] = xi + vi * dt
         v_out[i] = vi
         return
     p = planes[k]

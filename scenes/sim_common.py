@@ -365,7 +365,7 @@ def simulate(
             perturbation of its initial positions for a noise floor).
         observer: ``observer(step, state, info)`` after every step (``step`` from 1), with
             ``info`` holding ``kinetic`` and ``potential`` [J] and ``contacts`` (points, normals
-            and times of impact ``toi`` [s from the run's start] of the step's contacts).
+            and times of impact ``toi`` [s from the step's start] of the step's contacts).
 
     Returns:
         ``(summary, final_state)``: the JSON summary and the final state as numpy arrays.

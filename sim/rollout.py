@@ -199,7 +199,8 @@ class _Runner:
         self.states: list[State] = []
         self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
                       "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0,
-                      "diverged": False, "diverged_step": None}
+                      "diverged": False, "diverged_step": None,
+                      "divergence_message": None}
 
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
         integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
@@ -279,9 +280,10 @@ class _Runner:
             try:
                 integ.step(s, s_next, self.dt, self.substeps)
             except (SimulationDiverged, ContactLimitExceeded) as exc:
+                implicit = "" if self.integrator == "implicit" else " or integrator='implicit'"
                 raise SimulationDiverged(
-                    f"rollout: step {k + 1} of {self.steps}: {exc}; use more substeps, a shorter dt or "
-                    f"integrator='implicit' (on_divergence='return' returns instead)") from None
+                    f"rollout: step {k + 1} of {self.steps}: {exc}; use more substeps, a shorter dt{implicit} "
+                    f"(on_divergence='return' returns instead)") from None
             if record is not None:
                 record.append(s_next.numpy())
             if requires_grad:
@@ -304,12 +306,13 @@ class _Runner:
         self.segment_starts = {0: record[0]}
         try:
             self._forward_steps(start, record, requires_grad)
-        except SimulationDiverged:
+        except SimulationDiverged as exc:
             if self.on_divergence != "return":
                 raise
             # the frames from the diverged step on hold the last completed one; no gradient
             self.stats["diverged"] = True
             self.stats["diverged_step"] = len(record)
+            self.stats["divergence_message"] = str(exc)
             self.tape, self.states = None, []
             record.extend([record[-1]] * (self.steps + 1 - len(record)))
         if self.handler is not None:
@@ -503,9 +506,9 @@ def rollout(
             from its centre, checked every substep; or a substep past the contact limits,
             :class:`collision.contacts.ContactLimitExceeded`): "raise" (default) raises
             :class:`sim.stability.SimulationDiverged` naming the step; "return" stops there and
-            returns with ``stats["diverged"] = True`` and ``stats["diverged_step"]`` (the first
-            step not completed), every later frame holding the last completed one; such a
-            result has no gradient (its backward raises).
+            returns with ``stats["diverged"] = True``, ``stats["diverged_step"]`` (the first
+            step not completed) and ``stats["divergence_message"]``, every later frame holding
+            the last completed one; such a result has no gradient (its backward raises).
 
     Either parameter replaces the model's array in a shallow copy of ``model`` (``model``
     itself is not changed). When it requires gradients, they flow through everything the

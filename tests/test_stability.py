@@ -111,7 +111,7 @@ def test_scene_stops_a_substep_past_the_contact_limits(monkeypatch, limit):
     if limit == "hits":
         monkeypatch.setattr(collision.response, "MAX_HITS_MIN", 10)
         monkeypatch.setattr(collision.response, "MAX_HITS_PER_VERTEX", 0)
-        pattern = r"step \d+: \d+ contacts in one substep, more than the limit of 10 .*--substeps.*--dt"
+        pattern = r"step \d+: \d+ contacts in one collision round of a substep, more than the limit of 10 .*--substeps.*--dt"
     else:
         monkeypatch.setattr(collision.replay, "MAX_SOLVE_WORK", 1e3)
         pattern = r"step \d+: .*MAX_SOLVE_WORK.*--substeps.*--dt"
@@ -157,6 +157,7 @@ def test_rollout_of_a_diverging_cloth_raises_or_returns_flagged():
     v = v0.clone().requires_grad_(True)
     res = rollout(model, 30, 1.0 / 60.0, 1, particle_qd=v, on_divergence="return")
     assert res.stats["diverged"] is True and 1 <= res.stats["diverged_step"] <= 30
+    assert "diverged" in res.stats["divergence_message"]
     assert torch.isfinite(res.particle_q).all() and res.particle_q.shape[0] == 31
     with pytest.raises(RuntimeError, match="no gradient"):
         res.particle_q[-1].sum().backward()
