@@ -163,17 +163,21 @@ its tolerance and error use."""
 class _Trace:
     """Per-step observables of one run (the :func:`scenes.sim_common.simulate` observer)."""
 
-    def __init__(self, model, dt: float) -> None:
+    def __init__(self, dt: float) -> None:
         self.dt = dt
-        P, B = int(model.particle_count), int(model.body_count)
-        self.masses = np.concatenate([model.particle_mass.numpy()[:P] if P else np.zeros(0),
-                                      model.body_mass.numpy()[:B] if B else np.zeros(0)])
-        self.free = self.masses > 0
         self.positions: list[np.ndarray] = []
         self.com: list[np.ndarray] = []
         self.com_velocity: list[np.ndarray] = []
         self.energy: list[float] = []
         self.first_contact: float | None = None
+
+    def bind(self, model):
+        """``prepare`` for :func:`scenes.sim_common.simulate`: takes the masses of the model the
+        run steps (returned unchanged)."""
+        P, B = int(model.particle_count), int(model.body_count)
+        self.masses = np.concatenate([model.particle_mass.numpy()[:P] if P else np.zeros(0),
+                                      model.body_mass.numpy()[:B] if B else np.zeros(0)])
+        return model
 
     def __call__(self, step: int, state, info: dict[str, Any]) -> None:
         arrays = state.numpy()
@@ -221,7 +225,7 @@ def run_setting(module, setting: dict[str, Any], steps: int, thickness: float, p
                 seed: int = 0) -> dict[str, Any]:
     """One run of ``module`` with ``setting`` (initial positions perturbed by ``perturb`` [m]):
     the summary's figures and the per-step trace (or the divergence)."""
-    from scenes.sim_common import SimulationDiverged, build_model, default_args, simulate
+    from scenes.sim_common import SimulationDiverged, default_args, simulate
 
     args = default_args(steps=steps, substeps=setting["substeps"], integrator=setting["integrator"],
                         response=setting.get("response", "replayed"),
@@ -231,10 +235,15 @@ def run_setting(module, setting: dict[str, Any], steps: int, thickness: float, p
                         ccd_precision=setting.get("ccd_precision", "float64"),
                         ccd_tolerance_scale=setting.get("ccd_tolerance_scale", 1.0),
                         root_max_iterations=setting.get("root_max_iterations"))
-    trace = _Trace(build_model(module.build, args), float(args.dt))
+    trace = _Trace(float(args.dt))
+    perturbed = _perturbed(perturb, seed) if perturb else None
+
+    def prepare(model):
+        return trace.bind(perturbed(model) if perturbed else model)
+
     try:
-        summary, _ = simulate(module.build, args, None, name=module.NAME, progress=False,
-                              prepare=_perturbed(perturb, seed) if perturb else None, observer=trace)
+        summary, _ = simulate(module.build, args, None, name=module.NAME, progress=False, prepare=prepare,
+                              observer=trace)
     except SimulationDiverged as exc:
         text = str(exc)
         return {"diverged": text.split(":", 1)[1].strip() if ":" in text else text}

@@ -243,8 +243,6 @@ or exchanged with gravity, so that much kinetic energy means the explicit spring
 (substeps too long for their stiffness), not physics."""
 
 
-
-
 class EnergyMeter:
     """Kinetic and potential energy of a model's states (numpy, float64)."""
 
@@ -372,7 +370,8 @@ def simulate(
     """
     from tqdm import tqdm
 
-    from collision.response import ContactLimitExceeded, ImpulseCollisionHandler
+    from collision.contacts import ContactLimitExceeded
+    from collision.response import ImpulseCollisionHandler
     from sim.integrator import make_integrator
     from sim.penetration import PenetrationChecker
     from sim.stability import DivergenceGuard, check_explicit_substep

@@ -336,7 +336,7 @@ class SemiImplicitIntegrator:
             dim=m.particle_count,
             inputs=[x0, v_start, v, m.particle_inv_mass, m.planes, idx, wp.float64(m.restitution),
                     wp.float64(m.friction), thickness,
-                    wp.vec3d(*np.asarray(m.gravity, dtype=np.float64)), hd, self._drift(h)],
+                    self.gravity, hd, self._drift(h)],
             outputs=[x_out, v_out],
             device=d,
         )
