@@ -71,8 +71,17 @@ stays bounded."""
 
 STICKING_MAX_CONTACTS = 48
 """Most active contacts for which a solve tries static friction as one system (three unknowns
-each, a dense solve of ``(3 n)^3``): a few resting boxes. Larger sets (a draped cloth) take
-the friction pass (each contact's stopping impulse, shared)."""
+each, a dense solve of ``(3 n)^3``): a few resting boxes, a small draped cloth. Larger sets
+take the friction pass (each contact's stopping impulse, shared)."""
+
+FRICTION_SPLIT_ITERATIONS = 8
+"""Most solves of the frictional system while its split into sticking and sliding contacts
+changes (:meth:`_FrictionSplit.mixed`); a split that still changes, or returns to one it
+tried, gives way to the friction pass."""
+
+SLIP_REVERSAL = 1e-9
+"""A sliding contact whose slip after the solve runs against its friction direction by more than
+this [m/s] sticks instead (rounding of a slip that stopped exactly stays far below)."""
 
 
 def active_tape():
@@ -381,6 +390,7 @@ class ContactReplay:
                   inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                           wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
+        factors = self._factor(matrix)
 
         def normal_pass(vp, vb):
             # normal impulses that bring every active contact's normal velocity to its target
@@ -389,7 +399,7 @@ class ContactReplay:
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
-            solution = self._dense_solve(matrix, rhs)
+            solution = self._dense_solve(matrix, rhs, factors)
             normal = self._zeros(c, wp.vec3d)
             return normal, self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, normal))
 
@@ -406,16 +416,24 @@ class ContactReplay:
         if share is not None and self.friction > 0.0 and n_u <= STICKING_MAX_CONTACTS:
             # static friction first: every active contact sticking, its whole relative velocity
             # solved jointly (normal target, no slip); taken when every impulse lies in its
-            # friction cone (a decision, like the active set), else the friction pass below
-            sticking = self._sticking(uc, cu, c, n_u, normal, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
+            # friction cone (a decision, like the active set), else all sliding, then a split of
+            # the two, else the friction pass below
+            split = _FrictionSplit(self, uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
+            sticking = split.sticking(normal)
             if sticking is not None:
                 return (*sticking, pushed(sticking[0], sticking[1]))
-            # then every active contact sliding against its slip after the normal pass, its
-            # friction impulse mu j_n in the same solve as j_n
-            sliding = self._sliding(uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
-                                    vp, vb)
+            # then, when no contact could stick, every active contact sliding against its slip
+            # after the normal pass, its friction impulse mu j_n in the same solve as j_n
+            sliding = None
+            if split.outside == n_u:
+                sliding = self._sliding(uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
+                                        vp, vb)
             if sliding is not None:
                 return (*sliding, pushed(sliding[0], sliding[1]))
+            # then some contacts sticking and the others sliding, in one solve
+            mixed = split.mixed()
+            if mixed is not None:
+                return (*mixed, pushed(mixed[0], mixed[1]))
         if share is not None and self.friction > 0.0:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
@@ -428,52 +446,6 @@ class ContactReplay:
             vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b)
             normal, (vp, vb) = refined_pass(vp_f, vb_f)
         return vp, vb, normal, pushed(vp, vb)
-
-    def _sticking(self, uc, cu, c: int, n_u: int, normal, contacts, pairs_w, weights, sides, masses, lever, vm_p,
-                  vm_b):
-        """Every active contact sticking: three unknowns each (:func:`kernels.contact.contact_axis`),
-        the normal relative velocity brought to its target and the tangential one to zero by one
-        exact solve and its refinement. Returns ``(particle_qd, body_qd, normal impulses)`` as
-        :meth:`solve`, or None when some contact's impulse pulls or leaves its friction cone.
-
-        Redundant contacts leave the split of the friction among them free: it is chosen in
-        proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
-        pass's impulses ``normal``, and when that split leaves a contact outside its cone, the
-        first trial's own (a decision, which changes the split, not the motion; under a tape the
-        rejected trial's launches stay recorded, with no gradient reaching them)."""
-        _, targets, _, normals, _ = contacts
-        m = 3 * n_u
-
-        def trial(loads):
-            tangent_weight = self.take(c, wp.float64, zero=False, grad=False)
-            with paused_tape():
-                self._launch(K.tangent_weights_kernel, dim=1, inputs=[c, cu, loads, normals], outputs=[tangent_weight],
-                          device=self.device)
-            matrix = self._zeros(0, wp.float64, shape=(m, m))
-            self._launch(K.sticking_delassus_kernel, dim=(m, m),
-                      inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
-                              wp.float64(REGULARIZATION), tangent_weight],
-                      outputs=[matrix], device=self.device)
-            return self._refined_impulses(matrix, m, K.sticking_rhs_kernel, K.sticking_impulses_kernel, (), uc, cu, c,
-                                          pairs_w, weights, normals, targets, sides, masses, lever, vm_p, vm_b)
-
-        def outside(total) -> bool:
-            count = self.take(1, wp.int32, grad=False)
-            with paused_tape():
-                self._launch(K.outside_cone_kernel, dim=c, inputs=[total, normals, cu, wp.float64(self.friction)],
-                             outputs=[count], device=self.device)
-            return bool(count.numpy()[0])
-
-        vp, vb, total = trial(normal)
-        if outside(total):
-            # the split by the normal pass's loads left a contact outside its cone: split by
-            # this trial's own loads (a face on a slope: the downhill edge carries more)
-            vp, vb, total = trial(total)
-            if outside(total):
-                return None
-        normal_part = self._zeros(c, wp.vec3d)
-        self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal_part], device=self.device)
-        return vp, vb, normal_part
 
     def _pushed(self, active, c: int, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb):
         """The velocities that move the positions: ``vp``, ``vb`` (after the impulses) plus the
@@ -551,19 +523,21 @@ class ContactReplay:
         return vp, vb, normal
 
     def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
-                          pairs_w, weights, normals, targets, sides, masses, lever, vp, vb):
+                          pairs_w, weights, normals, targets, sides, masses, lever, vp, vb, rhs_args=()):
         """The impulses of a system ``matrix`` (``rows`` equations from ``rhs_kernel``, impulses per contact
-        from ``impulse_kernel`` with ``impulse_args`` after the solution and the normals) on top
+        from ``impulse_kernel`` with ``impulse_args`` after the solution and the normals; ``rhs_args``
+        follow the velocities in ``rhs_kernel``'s inputs) on top
         of the velocities ``vp``, ``vb``, solved and refined once on the residual (see the
         normal passes of :meth:`_solve`). Returns (particle_qd, body_qd, the summed impulses)."""
         total = None
+        factors = self._factor(matrix)
         for _ in range(2):
             rhs = self._zeros(rows, wp.float64)
             self._launch(rhs_kernel, dim=rows,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist), *rhs_args],
                       outputs=[rhs], device=self.device)
-            solution = self._dense_solve(matrix, rhs)
+            solution = self._dense_solve(matrix, rhs, factors)
             impulses = self._zeros(c, wp.vec3d)
             self._launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
                       device=self.device)
@@ -597,28 +571,41 @@ class ContactReplay:
                   outputs=[normal, out_p, out_b], device=self.device)
         return (out_p if p_count else vp), (out_b if b_count else vb)
 
-    def _dense_solve(self, matrix, rhs):
-        """``A^-1 b`` with the implicit adjoint recorded on the active tape."""
-        n = rhs.shape[0]
+    def _factor(self, matrix):
+        """The LU factors of a square system ``matrix`` (:func:`kernels.contact.lu_factor_kernel`;
+        a solve's refinement pass reuses them)."""
+        n = matrix.shape[0]
         self.solve_work += float(n) ** 3
         if self.solve_work > MAX_SOLVE_WORK:
             raise ContactLimitExceeded(
                 f"the exact impulse solves of one substep exceed the work limit MAX_SOLVE_WORK = {MAX_SOLVE_WORK:.0e} "
                 f"(sum of n^3 over solves of n unknowns; this one has {n}): the substep is far too long for the motion")
-        work = self.take((n, n), wp.float64, grad=False)
+        work = self.take((n, n), wp.float64, zero=False, grad=False)
+        pivots = self.take(n, wp.int32, zero=False, grad=False)
+        with paused_tape():  # the solve's implicit adjoint stands for it (:meth:`_dense_solve`)
+            self._launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
+        return work, pivots
+
+    def _dense_solve(self, matrix, rhs, factors=None):
+        """``A^-1 b`` with the implicit adjoint recorded on the active tape; ``factors`` from
+        :meth:`_factor` of the same ``matrix`` (made here when None)."""
+        n = rhs.shape[0]
+        work, pivots = factors if factors is not None else self._factor(matrix)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
-            self._launch(K.dense_solve_kernel, dim=1, inputs=[matrix, rhs, 0], outputs=[work, solution],
-                      device=self.device)
+            self._launch(K.lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
         tape = active_tape()
         if tape is not None:
             device = self.device
 
             def backward():
                 adjoint = wp.zeros(n, dtype=wp.float64, device=device)
-                scratch = wp.zeros((n, n), dtype=wp.float64, device=device)
-                wp.launch(K.dense_solve_kernel, dim=1, inputs=[matrix, solution.grad, 1], outputs=[scratch, adjoint],
+                transposed = wp.empty((n, n), dtype=wp.float64, device=device)
+                transposed_pivots = wp.empty(n, dtype=wp.int32, device=device)
+                wp.launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=[transposed, transposed_pivots],
                           device=device)
+                wp.launch(K.lu_solve_kernel, dim=1, inputs=[transposed, transposed_pivots, solution.grad],
+                          outputs=[adjoint], device=device)
                 wp.launch(K.solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
                           outputs=[matrix.grad, rhs.grad], device=device)
 
@@ -717,3 +704,121 @@ class ContactReplay:
                               self._or(moving_b, self.empty_twist), body_owner, toi, wp.float64(h)],
                       outputs=[self._or(xp, self._unused_vec), self._or(bq, self._unused_pose)], device=self.device)
         return (xp if p_count else x_pred), (bq if b_count else bq_pred)
+
+
+class _FrictionSplit:
+    """The frictional solves of one active set with Coulomb's limit (:meth:`ContactReplay.solve`):
+    three unknowns per active contact (:func:`kernels.contact.contact_axis`) in one system
+    (:func:`kernels.contact.sticking_delassus_kernel`), where a sticking contact's relative
+    velocity is brought to its normal target and zero slip, and a sliding one keeps its normal
+    target with the friction ``j_t = -mu j_n s`` against its slip direction ``s``.
+
+    :meth:`sticking` tries every contact sticking; :meth:`mixed` continues from its last trial:
+    contacts whose impulse leaves the friction cone slide, their friction ``mu j_n`` along the
+    friction they asked for, and sliding contacts whose slip turns back stick again
+    (:func:`kernels.contact.slip_update_kernel`), until the split holds, returns to one it
+    tried, or :data:`FRICTION_SPLIT_ITERATIONS` solves are done.
+
+    Redundant contacts leave the split of the friction among them free: it is chosen in
+    proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
+    pass's impulses, and after a trial that leaves a contact outside its cone, the last trial's
+    own (a decision, which changes the split, not the motion; under a tape the rejected trials'
+    launches stay recorded, with no gradient reaching them). Which contacts slide is a decision
+    too; their directions come from the trials' impulses on the tape, so the mixed solve's
+    friction directions carry their derivative.
+
+    Args:
+        replay: the :class:`ContactReplay` whose arrays and launches it uses.
+        The others: as in :meth:`ContactReplay._solve`.
+    """
+
+    def __init__(self, replay: ContactReplay, uc, cu, c: int, n_u: int, contacts, pairs_w, weights, sides, masses,
+                 lever, vm_p, vm_b):
+        self.r = replay
+        self.uc, self.cu, self.c, self.n_u = uc, cu, c, n_u
+        self.contacts, self.pairs_w, self.weights, self.sides, self.masses, self.lever = (
+            contacts, pairs_w, weights, sides, masses, lever)
+        self.vm = (vm_p, vm_b)
+        self.mu = wp.float64(replay.friction)
+        self.last = None  # (particle_qd, body_qd, impulses, slip) of the last trial
+        self.outside = 0  # active contacts whose impulse pulled or left the cone in the last sticking trial
+
+    def _trial(self, loads, slip):
+        r, c, (_, targets, _, normals, _) = self.r, self.c, self.contacts
+        m = 3 * self.n_u
+        tangent_weight = r.take(c, wp.float64, zero=False, grad=False)
+        with paused_tape():
+            r._launch(K.tangent_weights_kernel, dim=1, inputs=[c, self.cu, loads, normals], outputs=[tangent_weight],
+                      device=r.device)
+        matrix = r._zeros(0, wp.float64, shape=(m, m))
+        r._launch(K.sticking_delassus_kernel, dim=(m, m),
+                  inputs=[self.uc, self.pairs_w, self.weights, normals, r.vertex_type, r.vertex_owner, *self.sides,
+                          *self.masses, wp.float64(REGULARIZATION), tangent_weight, slip, self.mu],
+                  outputs=[matrix], device=r.device)
+        vp, vb, total = r._refined_impulses(matrix, m, K.sticking_rhs_kernel, K.sticking_impulses_kernel, (), self.uc,
+                                            self.cu, c, self.pairs_w, self.weights, normals, targets, self.sides,
+                                            self.masses, self.lever, *self.vm, rhs_args=(slip,))
+        self.last = (vp, vb, total, slip)
+        return self.last
+
+    def _changes(self):
+        """The next split after the last trial and how many contacts it changes: the directions
+        (fresh, taped from the trial's impulses) after the decision which contacts slide."""
+        r, (vp, vb, total, slip) = self.r, self.last
+        normals = self.contacts[3]
+        counts = r.take(1, wp.int32, grad=False)
+        codes = r.take(self.c, wp.int32, zero=False, grad=False)
+        with paused_tape():
+            r._launch(K.slip_update_kernel, dim=self.c,
+                      inputs=[total, normals, self.cu, self.pairs_w, self.weights, r.vertex_type, r.vertex_owner,
+                              self.lever, r._or(vp, r.empty_vec), r._or(vb, r.empty_twist), self.mu,
+                              wp.float64(SLIP_REVERSAL), slip],
+                      outputs=[codes, counts], device=r.device)
+        changes = int(counts.numpy()[0])
+        if not changes:
+            return slip, 0
+        slip_next = r.take(self.c, wp.vec3d, zero=False)
+        r._launch(K.slip_directions_from_impulses_kernel, dim=self.c, inputs=[codes, total, normals, slip],
+                  outputs=[slip_next], device=r.device)
+        return slip_next, changes
+
+    def _result(self):
+        r, (vp, vb, total, _) = self.r, self.last
+        normal_part = r._zeros(self.c, wp.vec3d)
+        r._launch(K.normal_part_kernel, dim=self.c, inputs=[total, self.contacts[3]], outputs=[normal_part],
+                  device=r.device)
+        return vp, vb, normal_part
+
+    def sticking(self, normal):
+        """Every active contact sticking (split by the loads ``normal``, then by the trial's
+        own): ``(particle_qd, body_qd, normal impulses)`` as :meth:`ContactReplay.solve`, or None
+        when some impulse pulls or leaves its cone (how many: :attr:`outside`)."""
+        r = self.r
+        slip = r.take(self.c, wp.vec3d, grad=False)  # zero: every contact sticking
+        for loads in (normal, None):
+            _, _, total, _ = self._trial(normal if loads is not None else self.last[2], slip)
+            count = r.take(1, wp.int32, grad=False)
+            with paused_tape():
+                r._launch(K.outside_cone_kernel, dim=self.c, inputs=[total, self.contacts[3], self.cu, self.mu],
+                          outputs=[count], device=r.device)
+            self.outside = int(count.numpy()[0])
+            if not self.outside:
+                return self._result()
+        return None
+
+    def mixed(self):
+        """Some contacts sticking, the others sliding, from the last sticking trial: as
+        :meth:`sticking`, or None when the split returns to one it tried or still changes after
+        :data:`FRICTION_SPLIT_ITERATIONS` solves. A contact that pulls is left to the caller's
+        active set, which drops it."""
+        seen = set()
+        for _ in range(FRICTION_SPLIT_ITERATIONS):
+            slip, changes = self._changes()
+            if not changes:
+                return self._result()
+            sliding = (np.abs(slip.numpy()[: self.c]).sum(axis=1) > 0.0).tobytes()
+            if sliding in seen:
+                return None  # the split cycles
+            seen.add(sliding)
+            self._trial(self.last[2], slip)
+        return None

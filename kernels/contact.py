@@ -1111,25 +1111,14 @@ def push_active_kernel(
         flags[c] = 0
 
 
-@wp.kernel
-def dense_solve_kernel(
-    matrix: wp.array2d(dtype=wp.float64),
-    rhs: wp.array(dtype=wp.float64),
-    transpose: int,
-    work: wp.array2d(dtype=wp.float64),
-    solution: wp.array(dtype=wp.float64),
-):
-    """``solution = A^-1 rhs`` (``A^-T rhs`` when ``transpose``) by Gaussian elimination with
-    partial pivoting, launched with ``dim=1``. Not differentiated by the tape: the caller records
-    the implicit adjoint (a solve with the transposed matrix) instead."""
-    n = rhs.shape[0]
-    for i in range(n):
-        for j in range(n):
-            if transpose != 0:
-                work[i, j] = matrix[j, i]
-            else:
-                work[i, j] = matrix[i, j]
-        solution[i] = rhs[i]
+@wp.func
+def lu_factor(work: wp.array2d(dtype=wp.float64), pivots: wp.array(dtype=wp.int32)):
+    """In-place LU factorisation of the square ``work`` by Gaussian elimination with partial
+    pivoting (whole rows swapped, as LAPACK's getrf): the unit lower factor's multipliers below
+    the diagonal, the upper factor on and above it, the row swapped with row ``k`` at step ``k``
+    in ``pivots[k]``. A zero column leaves a zero pivot (its unknown is set to 0 by
+    :func:`lu_substitute`)."""
+    n = work.shape[0]
     for k in range(n):
         p = k
         best = wp.abs(work[k, k])
@@ -1137,22 +1126,39 @@ def dense_solve_kernel(
             if wp.abs(work[i, k]) > best:
                 best = wp.abs(work[i, k])
                 p = i
+        pivots[k] = p
         if p != k:
             for j in range(n):
                 tmp = work[k, j]
                 work[k, j] = work[p, j]
                 work[p, j] = tmp
-            tmp = solution[k]
-            solution[k] = solution[p]
-            solution[p] = tmp
         pivot = work[k, k]
         if pivot != wp.float64(0.0):
             for i in range(k + 1, n):
                 f = work[i, k] / pivot
+                work[i, k] = f
                 if f != wp.float64(0.0):
-                    for j in range(k, n):
+                    for j in range(k + 1, n):
                         work[i, j] = work[i, j] - f * work[k, j]
-                    solution[i] = solution[i] - f * solution[k]
+
+
+@wp.func
+def lu_substitute(work: wp.array2d(dtype=wp.float64), pivots: wp.array(dtype=wp.int32),
+                  solution: wp.array(dtype=wp.float64)):
+    """``solution`` (holding the right-hand side) overwritten by the solution of the system
+    factorised by :func:`lu_factor`: the row swaps, then forward and back substitution."""
+    n = work.shape[0]
+    for k in range(n):
+        p = pivots[k]
+        if p != k:
+            tmp = solution[k]
+            solution[k] = solution[p]
+            solution[p] = tmp
+    for i in range(n):
+        s = solution[i]
+        for j in range(i):
+            s = s - work[i, j] * solution[j]
+        solution[i] = s
     for kk in range(n):
         k = n - 1 - kk
         s = solution[k]
@@ -1162,6 +1168,40 @@ def dense_solve_kernel(
             solution[k] = s / work[k, k]
         else:
             solution[k] = wp.float64(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def lu_factor_kernel(
+    matrix: wp.array2d(dtype=wp.float64),
+    transpose: int,
+    work: wp.array2d(dtype=wp.float64),
+    pivots: wp.array(dtype=wp.int32),
+):
+    """:func:`lu_factor` of ``matrix`` (of its transpose when ``transpose``) into ``work`` and
+    ``pivots``, launched with ``dim=1``."""
+    n = matrix.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if transpose != 0:
+                work[i, j] = matrix[j, i]
+            else:
+                work[i, j] = matrix[i, j]
+    lu_factor(work, pivots)
+
+
+@wp.kernel(enable_backward=False)
+def lu_solve_kernel(
+    work: wp.array2d(dtype=wp.float64),
+    pivots: wp.array(dtype=wp.int32),
+    rhs: wp.array(dtype=wp.float64),
+    solution: wp.array(dtype=wp.float64),
+):
+    """``solution = A^-1 rhs`` from the factors of :func:`lu_factor_kernel`, launched with
+    ``dim=1``. Not differentiated by the tape: the caller records the implicit adjoint (a solve
+    with the transposed matrix) instead."""
+    for i in range(rhs.shape[0]):
+        solution[i] = rhs[i]
+    lu_substitute(work, pivots, solution)
 
 
 @wp.kernel
@@ -1208,27 +1248,53 @@ def sticking_delassus_kernel(
     body_inv_inertia: wp.array(dtype=wp.mat33d),
     regularization: wp.float64,
     tangent_weight: wp.array(dtype=wp.float64),
+    slip: wp.array(dtype=wp.vec3d),
+    friction: wp.float64,
     matrix: wp.array2d(dtype=wp.float64),
 ):
-    """Entry (r, u) of the sticking system: three unknowns per active contact (the impulse along
-    its normal and its two tangents, :func:`contact_axis`), ``e_r . K_cd e_u`` with the diagonal
-    scaled by ``1 + regularization`` as in :func:`delassus_kernel`, the tangential ones by
-    ``1 + regularization tangent_weight[c]``. Redundant contacts (a face on four corners) leave
-    the split of the friction among them free; the regularisation picks the split of least
-    weighted norm, and weights inverse to the normal loads (:func:`tangent_weights_kernel`)
-    make it the split in proportion to them, which stays in every contact's cone when the
-    total friction stays in the total cone."""
+    """Entry (r, u) of the frictional system: three unknowns per active contact (the impulse
+    along its normal and its two tangents, :func:`contact_axis`).
+
+    A sticking contact (``slip[c]`` zero) asks for its whole relative velocity: its rows are
+    ``e_r . K_cd e_u``, the diagonal scaled by ``1 + regularization`` as in
+    :func:`delassus_kernel`, the tangential ones by ``1 + regularization tangent_weight[c]``.
+    Redundant contacts (a face on four corners) leave the split of the friction among them free;
+    the regularisation picks the split of least weighted norm, and weights inverse to the normal
+    loads (:func:`tangent_weights_kernel`) make it the split in proportion to them, which stays
+    in every contact's cone when the total friction stays in the total cone.
+
+    A sliding contact (``slip[c]`` the unit direction its friction opposes) keeps its normal
+    row; its tangential rows say that its friction is Coulomb's, ``j_t = -mu j_n s``:
+    ``j_a + mu (s . t_a) j_n = 0`` per tangent ``t_a``, scaled by its own tangential response
+    ``t_a . K_cc t_a`` so that the rows are commensurate with the velocity rows."""
     r, u = wp.tid()
     c = unknown_contact[r // 3]
     d = unknown_contact[u // 3]
+    axis = r % 3
+    s = slip[c]
+    zero = wp.float64(0.0)
+    if axis != 0 and wp.length_sq(s) > zero:
+        value = zero
+        if r // 3 == u // 3:
+            t = contact_axis(normals[c], axis)
+            scale = wp.dot(t, contact_response(
+                c, c, t, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
+                particle_inv_mass, body_inv_mass, body_inv_inertia,
+            ))
+            if u % 3 == axis:
+                value = scale
+            elif u % 3 == 0:
+                value = scale * friction * wp.dot(s, t)
+        matrix[r, u] = value
+        return
     resp = contact_response(
         c, d, contact_axis(normals[d], u % 3), pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
         rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
     )
-    value = wp.dot(contact_axis(normals[c], r % 3), resp)
+    value = wp.dot(contact_axis(normals[c], axis), resp)
     if r == u:
         scale = regularization
-        if r % 3 != 0:
+        if axis != 0:
             scale = regularization * tangent_weight[c]
         value = value * (wp.float64(1.0) + scale)
     matrix[r, u] = value
@@ -1382,13 +1448,19 @@ def sticking_rhs_kernel(
     lever: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3d),
     body_qd: wp.array(dtype=wp.spatial_vectord),
+    slip: wp.array(dtype=wp.vec3d),
     rhs: wp.array(dtype=wp.float64),
 ):
-    """Right-hand side of sticking equation ``tid``: the target (the normal one, 0 along the
-    tangents) minus the current relative velocity along the axis."""
+    """Right-hand side of frictional equation ``tid`` (:func:`sticking_delassus_kernel`): the
+    target (the normal one, 0 along the tangents) minus the current relative velocity along the
+    axis; 0 for a sliding contact's tangential rows (Coulomb's law holds for the impulses of
+    every pass, so for their sum)."""
     r = wp.tid()
     c = unknown_contact[r // 3]
     axis = r % 3
+    if axis != 0 and wp.length_sq(slip[c]) > wp.float64(0.0):
+        rhs[r] = wp.float64(0.0)
+        return
     vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
     target = wp.float64(0.0)
     if axis == 0:
@@ -1441,6 +1513,86 @@ def outside_cone_kernel(
     jn = wp.dot(j, n)
     if jn < wp.float64(0.0) or wp.length(j - jn * n) > friction * jn:
         wp.atomic_add(count, 0, 1)
+
+
+SLIP_STICK = wp.constant(0)
+SLIP_KEEP = wp.constant(1)
+SLIP_START = wp.constant(2)
+
+
+@wp.kernel(enable_backward=False)
+def slip_update_kernel(
+    impulses: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    contact_unknown: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    lever: wp.array(dtype=wp.vec3d),
+    particle_qd: wp.array(dtype=wp.vec3d),
+    body_qd: wp.array(dtype=wp.spatial_vectord),
+    friction: wp.float64,
+    reversal: wp.float64,
+    slip: wp.array(dtype=wp.vec3d),
+    codes: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+):
+    """Which active contacts of a frictional solve (:func:`sticking_delassus_kernel`) stick and
+    which slide next, a decision (``codes``, for :func:`slip_directions_from_impulses_kernel`).
+    A sticking contact (``slip[c]`` zero) whose impulse leaves its cone (``|j_t| > mu j_n``)
+    starts sliding (``SLIP_START``); a sliding one whose slip after the solve (``particle_qd``,
+    ``body_qd``) runs against its direction ``s`` (``v_t . s < -reversal``) sticks
+    (``SLIP_STICK``); the others keep their state. ``counts[0]`` counts the changes. A contact
+    that pulls (``j_n < 0``) has no cone: it is the active set's to drop."""
+    c = wp.tid()
+    zero = wp.float64(0.0)
+    s = slip[c]
+    sliding = wp.length_sq(s) > zero
+    code = SLIP_STICK
+    if sliding:
+        code = SLIP_KEEP
+    if contact_unknown[c] >= 0:
+        n = normals[c]
+        j = impulses[c]
+        jn = wp.dot(j, n)
+        if not sliding:
+            length = wp.length(j - jn * n)
+            if length > friction * wp.max(jn, zero) and length > zero:
+                code = SLIP_START
+                wp.atomic_add(counts, 0, 1)
+        else:
+            vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+            if wp.dot(vrel - wp.dot(vrel, n) * n, s) < -reversal:
+                code = SLIP_STICK
+                wp.atomic_add(counts, 0, 1)
+    codes[c] = code
+
+
+@wp.kernel
+def slip_directions_from_impulses_kernel(
+    codes: wp.array(dtype=wp.int32),
+    impulses: wp.array(dtype=wp.vec3d),
+    normals: wp.array(dtype=wp.vec3d),
+    slip: wp.array(dtype=wp.vec3d),
+    slip_out: wp.array(dtype=wp.vec3d),
+):
+    """The friction directions of the next frictional solve (taped: they depend smoothly on the
+    state through the trial's impulses): zero for a sticking contact, the same ``s`` for one
+    that keeps sliding, and ``-j_t / |j_t|`` for one that starts (its friction at the cone's
+    limit, in the direction it asked for); ``codes`` from :func:`slip_update_kernel`."""
+    c = wp.tid()
+    zero = wp.float64(0.0)
+    code = codes[c]
+    if code == SLIP_KEEP:
+        slip_out[c] = slip[c]
+    elif code == SLIP_START:
+        n = normals[c]
+        j = impulses[c]
+        jt = j - wp.dot(j, n) * n
+        slip_out[c] = -jt / wp.length(jt)
+    else:
+        slip_out[c] = wp.vec3d(zero, zero, zero)
 
 
 @wp.kernel(enable_backward=False)

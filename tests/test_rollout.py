@@ -531,12 +531,12 @@ def test_tape_holds_the_replay_only_no_decisions_or_iterative_solves():
     kernels = {launch[0].key for launch in tape.launches if not callable(launch)}
     assert {"contact_geometry_kernel", "delassus_kernel", "contact_rhs_kernel", "time_of_impact_kernel",
             "push_rhs_kernel"} <= kernels
-    # friction: one of the three exact forms (all contacts sticking, all sliding, or the
-    # per-contact pass when the contacts are mixed)
+    # friction: one of the exact forms (all contacts sticking, all sliding, a split of the two in
+    # one system, or the per-contact pass)
     assert kernels & {"sticking_delassus_kernel", "sliding_delassus_kernel", "friction_impulses_kernel"}
     # the solve's implicit adjoint (a transposed solve), recorded as a function
     assert any(callable(launch) and "_dense_solve" in getattr(launch, "__qualname__", "") for launch in tape.launches)
     for decision in ("ccd_kernel", "pair_ccd_kernel", "pair_proximity_kernel", "solve_contacts_kernel",
-                     "dense_solve_kernel", "outside_cone_kernel", "slip_reversed_kernel", "push_active_kernel",
-                     "tangent_weights_kernel"):
+                     "lu_factor_kernel", "lu_solve_kernel", "outside_cone_kernel", "slip_reversed_kernel",
+                     "slip_update_kernel", "push_active_kernel", "tangent_weights_kernel"):
         assert decision not in kernels
