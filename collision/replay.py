@@ -13,9 +13,11 @@ the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differen
 * the impulses solve the active set's equations exactly (dense LU in a Warp kernel, refined
   once on its residual); the tape holds the implicit adjoint of each solve (a solve with the
   transposed matrix), never iterations. Coulomb friction: all active contacts sticking (normal
-  and tangential impulses in one system) when every impulse lies in its cone, else all sliding
-  (``j_n (n - mu s)`` against the slip ``s``) when none stops, else each contact's stopping
-  impulse with the normal impulses solved again on top (which regime: a decision);
+  and tangential impulses in one system) when every impulse lies in its cone, else, when no
+  contact could stick, all sliding (``j_n (n - mu s)`` against the slip ``s``) when none stops,
+  else a split of sticking and sliding contacts in one system (:class:`_FrictionSplit`), else
+  each contact's stopping impulse with the normal impulses solved again on top (which regime:
+  a decision);
 * the push: the separation ``SEPARATION_RATE (delta - d)`` restored by a second solve whose
   velocities move the positions but never reach the velocities;
 * time-of-impact integration ``x0 + t* v- + (h - t*) v+`` per particle and body;
@@ -344,8 +346,8 @@ class ContactReplay:
         Returns:
             (particle_qd, body_qd, normal impulses (C,) vec3, (particle_qd, body_qd) that move
             the positions): device arrays; the normal impulses are the normal parts of the
-            accepted solve's (the sticking or sliding one, or the last normal pass after the
-            friction pass); the last pair adds the push, the separation restored at the
+            accepted solve's (the sticking, sliding or split one, or the last normal pass after
+            the friction pass); the last pair adds the push, the separation restored at the
             position level (:func:`kernels.contact.push_rhs_kernel`).
         """
         # without a tape, its dense matrices are scratch: the next solve of the call reuses them
@@ -575,11 +577,6 @@ class ContactReplay:
         """The LU factors of a square system ``matrix`` (:func:`kernels.contact.lu_factor_kernel`;
         a solve's refinement pass reuses them)."""
         n = matrix.shape[0]
-        self.solve_work += float(n) ** 3
-        if self.solve_work > MAX_SOLVE_WORK:
-            raise ContactLimitExceeded(
-                f"the exact impulse solves of one substep exceed the work limit MAX_SOLVE_WORK = {MAX_SOLVE_WORK:.0e} "
-                f"(sum of n^3 over solves of n unknowns; this one has {n}): the substep is far too long for the motion")
         work = self.take((n, n), wp.float64, zero=False, grad=False)
         pivots = self.take(n, wp.int32, zero=False, grad=False)
         with paused_tape():  # the solve's implicit adjoint stands for it (:meth:`_dense_solve`)
@@ -590,6 +587,11 @@ class ContactReplay:
         """``A^-1 b`` with the implicit adjoint recorded on the active tape; ``factors`` from
         :meth:`_factor` of the same ``matrix`` (made here when None)."""
         n = rhs.shape[0]
+        self.solve_work += float(n) ** 3
+        if self.solve_work > MAX_SOLVE_WORK:
+            raise ContactLimitExceeded(
+                f"the exact impulse solves of one substep exceed the work limit MAX_SOLVE_WORK = {MAX_SOLVE_WORK:.0e} "
+                f"(sum of n^3 over solves of n unknowns; this one has {n}): the substep is far too long for the motion")
         work, pivots = factors if factors is not None else self._factor(matrix)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
@@ -723,9 +725,11 @@ class _FrictionSplit:
     proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
     pass's impulses, and after a trial that leaves a contact outside its cone, the last trial's
     own (a decision, which changes the split, not the motion; under a tape the rejected trials'
-    launches stay recorded, with no gradient reaching them). Which contacts slide is a decision
-    too; their directions come from the trials' impulses on the tape, so the mixed solve's
-    friction directions carry their derivative.
+    launches stay recorded). Which contacts slide is a decision too; their directions come from
+    the impulses of the trial where they started sliding, on the tape, so the split's friction
+    directions carry their derivative. A sliding contact keeps that direction while its slip
+    does not turn back against it: its friction opposes the friction it asked for, which is
+    the slip's direction only approximately.
 
     Args:
         replay: the :class:`ContactReplay` whose arrays and launches it uses.
@@ -809,9 +813,9 @@ class _FrictionSplit:
     def mixed(self):
         """Some contacts sticking, the others sliding, from the last sticking trial: as
         :meth:`sticking`, or None when the split returns to one it tried or still changes after
-        :data:`FRICTION_SPLIT_ITERATIONS` solves. A contact that pulls is left to the caller's
-        active set, which drops it."""
-        seen = set()
+        :data:`FRICTION_SPLIT_ITERATIONS` solves. A sticking contact that pulls is left to the
+        caller's active set, which drops it."""
+        seen = {np.zeros(self.c, dtype=bool).tobytes()}  # every contact sticking: tried
         for _ in range(FRICTION_SPLIT_ITERATIONS):
             slip, changes = self._changes()
             if not changes:

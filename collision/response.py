@@ -63,7 +63,8 @@ and the impact zones' rigid motion as taped Warp launches (:mod:`collision.repla
 friction is exact for the two common regimes: every contact sticking (one joint solve of the
 normal and tangential impulses: a box stays put on a slope steeper than it would be without
 friction) or every contact sliding (Coulomb's ``mu j_n`` against the slip in the same solve as
-``j_n``); mixed sets take each contact's stopping impulse, shared.
+``j_n``); mixed sets of up to 48 contacts solve a split of sticking and sliding contacts in one
+system, and larger or unsettled ones take each contact's stopping impulse, shared.
 """
 
 from __future__ import annotations

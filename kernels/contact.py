@@ -1540,11 +1540,12 @@ def slip_update_kernel(
 ):
     """Which active contacts of a frictional solve (:func:`sticking_delassus_kernel`) stick and
     which slide next, a decision (``codes``, for :func:`slip_directions_from_impulses_kernel`).
-    A sticking contact (``slip[c]`` zero) whose impulse leaves its cone (``|j_t| > mu j_n``)
-    starts sliding (``SLIP_START``); a sliding one whose slip after the solve (``particle_qd``,
-    ``body_qd``) runs against its direction ``s`` (``v_t . s < -reversal``) sticks
-    (``SLIP_STICK``); the others keep their state. ``counts[0]`` counts the changes. A contact
-    that pulls (``j_n < 0``) has no cone: it is the active set's to drop."""
+    A sticking contact (``slip[c]`` zero) that pushes (``j_n > 0``) and whose impulse leaves its
+    cone (``|j_t| > mu j_n``) starts sliding (``SLIP_START``); a sliding one that pulls, or whose
+    slip after the solve (``particle_qd``, ``body_qd``) runs against its direction ``s``
+    (``v_t . s < -reversal``), sticks (``SLIP_STICK``: sliding friction ``-mu j_n s`` with
+    ``j_n < 0`` would push along the slip); the others keep their state. ``counts[0]`` counts
+    the changes. A sticking contact that pulls is the caller's active set's to drop."""
     c = wp.tid()
     zero = wp.float64(0.0)
     s = slip[c]
@@ -1558,12 +1559,12 @@ def slip_update_kernel(
         jn = wp.dot(j, n)
         if not sliding:
             length = wp.length(j - jn * n)
-            if length > friction * wp.max(jn, zero) and length > zero:
+            if jn > zero and length > friction * jn:
                 code = SLIP_START
                 wp.atomic_add(counts, 0, 1)
         else:
             vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
-            if wp.dot(vrel - wp.dot(vrel, n) * n, s) < -reversal:
+            if jn < zero or wp.dot(vrel - wp.dot(vrel, n) * n, s) < -reversal:
                 code = SLIP_STICK
                 wp.atomic_add(counts, 0, 1)
     codes[c] = code
