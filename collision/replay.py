@@ -575,13 +575,14 @@ class ContactReplay:
 
     def _factor(self, matrix):
         """The LU factors of a square system ``matrix`` (:func:`kernels.contact.lu_factor_kernel`;
-        a solve's refinement pass reuses them)."""
+        a solve's refinement pass reuses them), with a slot for the factors of its transpose,
+        which the backward passes of the solves that share them make once."""
         n = matrix.shape[0]
         work = self.take((n, n), wp.float64, zero=False, grad=False)
         pivots = self.take(n, wp.int32, zero=False, grad=False)
         with paused_tape():  # the solve's implicit adjoint stands for it (:meth:`_dense_solve`)
             self._launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
-        return work, pivots
+        return work, pivots, []
 
     def _dense_solve(self, matrix, rhs, factors=None):
         """``A^-1 b`` with the implicit adjoint recorded on the active tape; ``factors`` from
@@ -592,7 +593,7 @@ class ContactReplay:
             raise ContactLimitExceeded(
                 f"the exact impulse solves of one substep exceed the work limit MAX_SOLVE_WORK = {MAX_SOLVE_WORK:.0e} "
                 f"(sum of n^3 over solves of n unknowns; this one has {n}): the substep is far too long for the motion")
-        work, pivots = factors if factors is not None else self._factor(matrix)
+        work, pivots, transposed = factors if factors is not None else self._factor(matrix)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
             self._launch(K.lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
@@ -601,13 +602,13 @@ class ContactReplay:
             device = self.device
 
             def backward():
+                if not transposed:  # the first of the solves sharing these factors to run backwards
+                    transposed.extend((wp.empty((n, n), dtype=wp.float64, device=device),
+                                       wp.empty(n, dtype=wp.int32, device=device)))
+                    wp.launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=transposed, device=device)
                 adjoint = wp.zeros(n, dtype=wp.float64, device=device)
-                transposed = wp.empty((n, n), dtype=wp.float64, device=device)
-                transposed_pivots = wp.empty(n, dtype=wp.int32, device=device)
-                wp.launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=[transposed, transposed_pivots],
+                wp.launch(K.lu_solve_kernel, dim=1, inputs=[*transposed, solution.grad], outputs=[adjoint],
                           device=device)
-                wp.launch(K.lu_solve_kernel, dim=1, inputs=[transposed, transposed_pivots, solution.grad],
-                          outputs=[adjoint], device=device)
                 wp.launch(K.solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
                           outputs=[matrix.grad, rhs.grad], device=device)
 

@@ -1495,6 +1495,14 @@ def normal_part_kernel(impulses: wp.array(dtype=wp.vec3d), normals: wp.array(dty
     out[c] = wp.dot(impulses[c], n) * n
 
 
+@wp.func
+def beyond_cone(j: wp.vec3d, n: wp.vec3d, friction: wp.float64) -> bool:
+    """Whether impulse ``j`` at a contact of normal ``n`` lies outside the friction cone
+    ``|j_t| <= mu j . n`` (a pulling impulse, ``j . n < 0``, always does)."""
+    jn = wp.dot(j, n)
+    return wp.length(j - jn * n) > friction * jn
+
+
 @wp.kernel(enable_backward=False)
 def outside_cone_kernel(
     impulses: wp.array(dtype=wp.vec3d),
@@ -1508,10 +1516,7 @@ def outside_cone_kernel(
     c = wp.tid()
     if contact_unknown[c] < 0:
         return
-    j = impulses[c]
-    n = normals[c]
-    jn = wp.dot(j, n)
-    if jn < wp.float64(0.0) or wp.length(j - jn * n) > friction * jn:
+    if beyond_cone(impulses[c], normals[c], friction):
         wp.atomic_add(count, 0, 1)
 
 
@@ -1558,8 +1563,7 @@ def slip_update_kernel(
         j = impulses[c]
         jn = wp.dot(j, n)
         if not sliding:
-            length = wp.length(j - jn * n)
-            if jn > zero and length > friction * jn:
+            if jn > zero and beyond_cone(j, n, friction):
                 code = SLIP_START
                 wp.atomic_add(counts, 0, 1)
         else:
