@@ -131,14 +131,24 @@ DIRECTIONS = 2
 SMOOTH = 1e-2
 """Two central differences that disagree by more than this (relative) mean the loss is not
 smooth at their scale: perturbations are amplified faster than the finite difference resolves."""
-HORIZON_SCENES = ("cloth_drop", "rigid_toss", "cloth_rigid", "bank_shot")
+HORIZON_SCENES = ("cloth_drop", "rigid_toss", "cloth_rigid", "bank_shot", "tunnel")
+INVERSE_SCENES = ("bank_shot", "tunnel")
+"""The inverse scenes the horizon sweep adds to the default scenes."""
 
 
 def _horizon_problem(name: str):
     """(model, dt, initial particle velocities (P, 3), body twists (B, 6)) of a scene at its
-    start: the simulation scenes at their defaults; ``bank_shot`` from its "newton" start."""
+    start: the simulation scenes at their defaults; ``bank_shot`` from its "newton" start;
+    ``tunnel`` (seed 0) from the velocity that hits its designated face of the spinning
+    tetrahedron at about 0.5 s."""
     import importlib
 
+    if name == "tunnel":
+        from scenes import tunnel
+
+        problem = tunnel.make_problem(0)
+        model = problem.model
+        return model, tunnel.DT, np.array([problem.v_star], dtype=np.float64), model.body_qd.numpy().reshape(-1, 6)
     if name == "bank_shot":
         from scenes import bank_shot
 
@@ -221,7 +231,7 @@ def main(argv=None) -> dict[str, Any]:
     report.add_size_arguments(parser, SCENES, "gradients", "short rollouts (seconds)",
                               "long rollouts, four finite-difference steps")
     args = parser.parse_args(argv)
-    args.scenes_default = args.scenes == ",".join(SCENES)  # the horizon sweep adds bank_shot then
+    args.scenes_default = args.scenes == ",".join(SCENES)  # the horizon sweep adds the inverse scenes then
     config, scenes = report.chosen(parser, args, CONFIGS, SCENES)
     import warp as wp
 
@@ -245,7 +255,7 @@ def main(argv=None) -> dict[str, Any]:
               "gradient is then the mollified one of the contacts this rollout made."]
     sweep_config = HORIZONS["quick" if args.quick else "full" if args.full else "default"]
     horizons = [h for h in sweep_config["horizons"] if args.steps is None or h <= max(args.steps, 1)] or [args.steps]
-    sweep_scenes = [n for n in HORIZON_SCENES if n in scenes or (n == "bank_shot" and args.scenes_default)]
+    sweep_scenes = [n for n in HORIZON_SCENES if n in scenes or (n in INVERSE_SCENES and args.scenes_default)]
     sweep = []
     for name in sweep_scenes:
         print(f"[gradients] horizons: {name}", file=sys.stderr, flush=True)

@@ -924,24 +924,27 @@ def check_cloth_hanging(response: str = "replayed", substeps: int = 8, *, second
 
 
 SPHERE = dict(cells=8, size=0.4, radius=0.15, subdivisions=2, drop=0.02, density=1.0, stretch_stiffness=20.0,
-              shear_stiffness=10.0, bend_stiffness=1.0, damping=0.03)
+              shear_stiffness=10.0, bend_stiffness=1.0, damping=0.03, drag=1.0)
 """The cloth on the sphere: 8 x 8 cells, 0.4 m, centred ``drop`` m above an icosphere of radius
 0.15 m (2 subdivisions) at the origin; 1 kg/m^2, springs 20 / 10 / 1 N/m, damping 0.03 N s/m
 (heavier and more damped than the cloth_drop scene's cloth so that it settles; more damping
-is unstable at 4 substeps at the light corner particles)."""
+is unstable at 4 substeps at the light corner particles), air drag 1/s
+(:attr:`sim.builder.ModelBuilder.particle_drag`: the spring damping acts along the springs
+only, and the draped corners, swinging about the folds, would swing on for minutes)."""
 
 
 def check_cloth_on_sphere(response: str = "replayed", substeps: int = 8, *, seconds: float = 10.0,
                           window: float = 1.0, friction: float = 0.5) -> list[Record]:
     """A cloth (:data:`SPHERE`) dropped centred onto a static icosphere (mu 0.5) drapes over it
     and comes to rest: its centre particle, on top of the sphere, moves <= 1e-6 m horizontally
-    over the last ``window`` s (creep)."""
+    over the last ``window`` s (creep) of ``seconds`` (10 s in both modes)."""
     from sim.mesh_io import icosphere
 
     cfg = SPHERE
     n, size = int(cfg["cells"]), float(cfg["size"])
     cell = size / n
     b = _builder(friction=friction)
+    b.particle_drag = cfg["drag"]
     material = {k: cfg[k] for k in ("density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping")}
     b.add_cloth_grid((-size / 2, -size / 2, cfg["radius"] + cfg["drop"]), None, n, n, cell, cell, **material)
     b.add_static_mesh(*icosphere(cfg["radius"], cfg["subdivisions"]))
@@ -1063,7 +1066,7 @@ CHECKS: dict[str, Check] = {c.name: c for c in [
     Check("free_rotation", check_free_rotation, [dict(seconds=5.0), dict(seconds=50.0)], [dict(seconds=5.0)]),
     Check("cloth_flat_box", check_cloth_flat_box, [{}]),
     Check("cloth_hanging", check_cloth_hanging, [dict(seconds=10.0)], [dict(seconds=6.0)]),
-    Check("cloth_on_sphere", check_cloth_on_sphere, [dict(seconds=10.0)], [dict(seconds=5.0)]),
+    Check("cloth_on_sphere", check_cloth_on_sphere, [dict(seconds=10.0)], [dict(seconds=10.0)]),
     Check("sliding_friction", check_sliding_friction, [{}]),
     Check("sphere_bounce", check_sphere_bounce, [{}]),
 ]}

@@ -163,6 +163,9 @@ class ContactReplay:
         self.particle_inv_mass = particle_inv_mass if particle_inv_mass is not None and particle_inv_mass.shape[0] else wp.zeros(1, dtype=wp.float64, device=device)
         self.body_inv_mass = body_inv_mass if body_inv_mass is not None and body_inv_mass.shape[0] else wp.zeros(1, dtype=wp.float64, device=device)
         self.body_inv_inertia_body = body_inv_inertia
+        # zero inverse inertia tensors: impulses applied with them move the bodies' centres only
+        n_bodies = body_inv_inertia.shape[0] if body_inv_inertia is not None else 0
+        self._translation_only = wp.zeros(max(n_bodies, 1), dtype=wp.mat33d, device=device)
         p = np.zeros((1, 4)) if planes is None or len(planes) == 0 else np.asarray(planes, dtype=np.float64)
         self.planes = wp.array(p, dtype=wp.vec4d, device=device)
         self.friction = float(friction)
@@ -328,7 +331,8 @@ class ContactReplay:
         )
         return out
 
-    def solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
+    def solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None,
+              start=None):
         """Exact impulses of an active set (refined once), with Coulomb friction, the velocities
         after them and those that move the positions (with the push).
 
@@ -342,25 +346,35 @@ class ContactReplay:
             vm_p, vm_b: the velocities before any impulse (``v-``).
             share: device (C,) friction share factors (see
                 :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
+            start: (particle_qd, body_qd, resting speed [m/s]): the velocities at the substep's
+                start and the approach speed below which a contact at ``t* = 0`` rests (its
+                sliding friction is a force over the substep,
+                :func:`kernels.contact.sliding_friction_half_kernel`); None: every friction
+                impulse counts as an impulse.
 
         Returns:
             (particle_qd, body_qd, normal impulses (C,) vec3, (particle_qd, body_qd) that move
             the positions): device arrays; the normal impulses are the normal parts of the
             accepted solve's (the sticking, sliding or split one, or the last normal pass after
             the friction pass); the last pair adds the push, the separation restored at the
-            position level (:func:`kernels.contact.push_rhs_kernel`).
+            position level (:func:`kernels.contact.push_rhs_kernel`), and for a sliding or
+            split solve half the velocity change of its sliding friction on resting contact
+            (linear, :func:`kernels.contact.sliding_friction_half_kernel`), which makes a slide
+            to rest second order in the substep.
         """
         # without a tape, its dense matrices are scratch: the next solve of the call reuses them
         # (an active set's repairs solve again and again: a cloth resting on a box with a few
         # hundred unknowns kept over a gigabyte of matrices to the end of each call)
         mark = None if any_tape() else self._arena.mark()
         try:
-            return self._solve(contacts, vertices, kinds, count, active, lever, inv_inertia_w, vm_p, vm_b, share)
+            return self._solve(contacts, vertices, kinds, count, active, lever, inv_inertia_w, vm_p, vm_b, share,
+                               start)
         finally:
             if mark is not None:
                 self._arena.release_squares(mark)
 
-    def _solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None):
+    def _solve(self, contacts, vertices, kinds, count: int, active, lever, inv_inertia_w, vm_p, vm_b, share=None,
+               start=None):
         """:meth:`solve` itself."""
         _, targets, weights, normals, pushes = contacts
         c = count
@@ -383,6 +397,20 @@ class ContactReplay:
 
         def pushed(vp, vb):
             return self._pushed(active, c, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb)
+
+        def frictional(vp, vb, normal, total, slip):
+            # the result of a frictional solve: its sliding friction on resting contact moves
+            # the positions by half its velocity change (a constant force over the substep)
+            if start is None:
+                return vp, vb, normal, pushed(vp, vb)
+            half = self._zeros(c, wp.vec3d)
+            self._launch(K.sliding_friction_half_kernel, dim=c,
+                         inputs=[total, normals, slip, contacts[0], pairs_w, weights, self.vertex_type,
+                                 self.vertex_owner, lever, *sides, *masses, self._or(start[0], self.empty_vec),
+                                 self._or(start[1], self.empty_twist), wp.float64(start[2])],
+                         outputs=[half], device=self.device)
+            linear = (masses[0], masses[1], self._translation_only)
+            return vp, vb, normal, self._apply(half, pairs_w, weights, sides, linear, *pushed(vp, vb))
 
         if not n_u:
             return vm_p, vm_b, self._zeros(c, wp.vec3d), pushed(vm_p, vm_b)
@@ -423,7 +451,7 @@ class ContactReplay:
             split = _FrictionSplit(self, uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
             sticking = split.sticking(normal)
             if sticking is not None:
-                return (*sticking, pushed(sticking[0], sticking[1]))
+                return (*sticking, pushed(sticking[0], sticking[1]))  # no contact slides
             # then, when no contact could stick, every active contact sliding against its slip
             # after the normal pass, its friction impulse mu j_n in the same solve as j_n
             sliding = None
@@ -431,11 +459,11 @@ class ContactReplay:
                 sliding = self._sliding(uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
                                         vp, vb)
             if sliding is not None:
-                return (*sliding, pushed(sliding[0], sliding[1]))
+                return frictional(*sliding)
             # then some contacts sticking and the others sliding, in one solve
             mixed = split.mixed()
             if mixed is not None:
-                return (*mixed, pushed(mixed[0], mixed[1]))
+                return frictional(*mixed, split.last[2], split.last[3])
         if share is not None and self.friction > 0.0:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
@@ -495,8 +523,8 @@ class ContactReplay:
         the velocities after the normal pass (``vp_n``, ``vb_n``;
         :func:`kernels.contact.slip_directions_kernel`), solved exactly for the normal targets
         (and refined, as the normal passes). Returns ``(particle_qd, body_qd, normal
-        impulses)`` as :meth:`solve`, or None when a contact pulls or stops slipping (its slip
-        turns back: it sticks)."""
+        impulses)`` as :meth:`solve` followed by the whole impulses and the slip directions, or
+        None when a contact pulls or stops slipping (its slip turns back: it sticks)."""
         _, targets, _, normals, _ = contacts
         directions = self._zeros(c, wp.vec3d)
         self._launch(K.slip_directions_kernel, dim=c,
@@ -522,7 +550,7 @@ class ContactReplay:
             return None
         normal = self._zeros(c, wp.vec3d)
         self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
-        return vp, vb, normal
+        return vp, vb, normal, total, directions
 
     def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
                           pairs_w, weights, normals, targets, sides, masses, lever, vp, vb, rhs_args=()):

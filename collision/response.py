@@ -101,6 +101,14 @@ SEPARATION_RATE = 0.1
 """Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
 (Bridson et al. 2002 use the same order); larger values make resting contacts jitter."""
 
+PROXIMITY_HYSTERESIS = 1e-3
+"""The proximity pass keeps mesh pairs and rigid vertex-plane pairs up to ``(1 +
+PROXIMITY_HYSTERESIS) delta`` apart, not just nearer than ``delta``: resting contact ends each
+substep at ``delta`` to rounding, and a load-bearing pair that rounding put a hair beyond it
+would otherwise leave the set for a substep, drop its load and kick the cloth (a draped cloth
+crept 2.6e-5 m/s). A pair beyond ``delta`` may approach until it reaches ``delta`` at the end of
+the substep (:func:`kernels.contact.contact_geometry_kernel`), so the band changes no motion."""
+
 DEFAULT_SEPARATION_RELATIVE = 1e-4
 """Separation used when the model's thickness is 0: this fraction of the diagonal of the
 collidable vertices' bounding box at the start (1e-4 m for a 1 m scene)."""
@@ -435,7 +443,7 @@ class ImpulseCollisionHandler:
         movable_particles = np.flatnonzero(particle_inv_mass > 0)
         self._plane_vertex_ids = np.concatenate([movable_particles, np.arange(mesh.shape_offset, mesh.static_offset)])
         self._plane_threshold = np.concatenate([np.full((len(movable_particles), 1), 1.0 - PLANE_ROUNDING_SLACK),
-                                                np.ones((self.n_shape, 1))])  # x delta, per vertex
+                                                np.full((self.n_shape, 1), 1.0 + PROXIMITY_HYSTERESIS)])  # x delta
         self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
@@ -837,9 +845,10 @@ class ImpulseCollisionHandler:
             radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
             if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
                 radius = None
-        mesh = self._narrow.near_count(x0[:n], delta * (1.0 + 1e-9), radius)  # slack: the exact test follows
+        reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
+        mesh = self._narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius)  # slack: the exact test follows
         planes = self._plane_hits(x0_w, delta)
-        return self._sorted_hits(mesh, planes, 0, delta) if mesh + planes else 0
+        return self._sorted_hits(mesh, planes, 0, reach) if mesh + planes else 0
 
     def _ccd_round(self, x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
         """One CCD round of the straight paths ``x0 -> x1`` (V + 1, 3) (device arrays ``x0_w``,
@@ -1010,6 +1019,7 @@ class ImpulseCollisionHandler:
         # the taped contact geometry, the velocities and those that move the positions
         st = {"dev": None, "vp": vm_p, "vb": vm_b, "xp": vm_p, "xb": vm_b}
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
+        resting = (*self._v_start, SEPARATION_RATE * self._sep_speed)  # contact_geometry_kernel's bounce threshold
         launch = self._launches.launch
 
         def current():
@@ -1093,7 +1103,7 @@ class ImpulseCollisionHandler:
                 # the first trial is recorded (usually it is the final one); repair trials stay off
                 # the tape (their O(n^2) matrices would be kept to the end)
                 with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    solved = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share)
+                    solved = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share, resting)
                 if iteration == 0:
                     recorded = solved
                 repaired, n_changes = repair(solved, active)
@@ -1109,7 +1119,7 @@ class ImpulseCollisionHandler:
                 # the replay of the final active set, recorded
                 share = self._friction_share(active) if mu > 0 else None
                 vp_d, vb_d, normal, moving = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b,
-                                                     share)
+                                                     share, resting)
             elif tape is not None:
                 # the repairs came back to the first trial's set: its recorded solve (the same
                 # values) is the one the tape continues from, not the last, unrecorded trial

@@ -103,16 +103,19 @@ def implicit_update(
     dv: wp.array(dtype=wp.vec3d),
     inv_mass: wp.array(dtype=wp.float64),
     h: wp.float64,
+    drag: wp.float64,
     x_out: wp.array(dtype=wp.vec3d),
     v_out: wp.array(dtype=wp.vec3d),
 ):
-    """``v1 = v0 + dv``, ``x1 = x0 + h v1``; pinned particles stay where they are at rest."""
+    """``v1 = (v0 + dv) / (1 + h drag)``, ``x1 = x0 + h v1``; pinned particles stay where
+    they are at rest. ``drag``: the linear air drag rate [1/s] (0: none), applied after the
+    implicit solve (a splitting: stable at any step, first order like the rest)."""
     i = wp.tid()
     if inv_mass[i] == f64(0.0):
         x_out[i] = x[i]
         v_out[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
         return
-    v1 = v[i] + dv[i]
+    v1 = (v[i] + dv[i]) / (f64(1.0) + h * drag)
     x_out[i] = x[i] + h * v1
     v_out[i] = v1
 

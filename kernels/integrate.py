@@ -59,20 +59,23 @@ def integrate_particles(
     gravity: wp.vec3d,
     dt: wp.float64,
     drift: wp.vec3d,
+    drag: wp.float64,
     x_out: wp.array(dtype=wp.vec3d),
     v_out: wp.array(dtype=wp.vec3d),
 ):
     """Semi-implicit Euler for particle ``tid``: ``v1 = v0 + dt (f w + g)``,
     ``x1 = x0 + dt v1 + drift``. ``drift`` is zero, or ``-dt^2 g / 2`` for the exact ballistic
     update: the springs' kick followed by the exact flow of free flight under gravity
-    (``x0 + dt (v0 + dt f w) + dt^2 g / 2``; still symplectic, exact for free flight)."""
+    (``x0 + dt (v0 + dt f w) + dt^2 g / 2``; still symplectic, exact for free flight). With a
+    linear air ``drag`` rate [1/s], ``v1`` is divided by ``1 + dt drag`` (the drag force
+    ``-drag m v1``, implicit: stable at any step)."""
     i = wp.tid()
     w = inv_mass[i]
     if w == f64(0.0):
         x_out[i] = x[i]
         v_out[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
         return
-    v1 = v[i] + (f[i] * w + gravity) * dt
+    v1 = (v[i] + (f[i] * w + gravity) * dt) / (f64(1.0) + dt * drag)
     x_out[i] = x[i] + v1 * dt + drift
     v_out[i] = v1
 

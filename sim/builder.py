@@ -390,6 +390,7 @@ class ModelBuilder:
         self._restitution = 0.0
         self._friction = 0.5
         self._thickness = 0.0
+        self._particle_drag = 0.0
 
     # ---------------------------------------------------------------- global settings
     def set_gravity(self, g: _Vec3Like | float) -> None:
@@ -429,6 +430,18 @@ class ModelBuilder:
     def thickness(self) -> float:
         """Minimum separation kept by the collision response [m] (>= 0; 0 = none)."""
         return self._thickness
+
+    @property
+    def particle_drag(self) -> float:
+        """Linear air drag of the particles [1/s] (>= 0; 0 = none, the default): the force
+        ``-particle_drag * m v`` on every moving particle (:attr:`sim.model.Model.particle_drag`).
+        It lets a draped cloth come to rest: the spring damping acts along the springs only, so
+        a flap swinging about a fold keeps swinging without it."""
+        return self._particle_drag
+
+    @particle_drag.setter
+    def particle_drag(self, value: float) -> None:
+        self._particle_drag = _scalar(value, "particle_drag", nonnegative=True)
 
     @thickness.setter
     def thickness(self, value: float) -> None:
@@ -929,4 +942,5 @@ class ModelBuilder:
             restitution=self._restitution,
             friction=self._friction,
             thickness=self._thickness,
+            particle_drag=self._particle_drag,
         )

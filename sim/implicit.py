@@ -403,7 +403,8 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             delta = self._solve_taped(x0, rhs, h, requires_grad, fixed)
             dv = wp.zeros(n, dtype=wp.vec3d, device=d, requires_grad=requires_grad)
             wp.launch(sum_kernel, dim=n, inputs=[delta, g], outputs=[dv], device=d)
-        wp.launch(implicit_update, dim=n, inputs=[x0, v0, dv, m.particle_inv_mass, wp.float64(h)],
+        wp.launch(implicit_update, dim=n, inputs=[x0, v0, dv, m.particle_inv_mass, wp.float64(h),
+                                                  wp.float64(m.particle_drag)],
                   outputs=[pred.particle_q, pred.particle_qd], device=d)
         self._last_pred = pred
 

@@ -287,7 +287,7 @@ class SemiImplicitIntegrator:
             integrate_particles,
             dim=m.particle_count,
             inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h),
-                    self._drift(h)],
+                    self._drift(h), wp.float64(m.particle_drag)],
             outputs=[pred.particle_q, pred.particle_qd],
             device=self.device,
         )

@@ -68,6 +68,9 @@ class Model:
         restitution: coefficient of restitution (0..1) for impulses.
         friction: Coulomb friction coefficient.
         thickness: minimum separation kept by collision response [m] (0 = none).
+        particle_drag: linear air drag of the particles [1/s] (>= 0; 0 = none): each moving
+            particle feels the force ``-particle_drag * m v``, applied implicitly
+            (``v1 = (v0 + dt a) / (1 + dt particle_drag)``, stable at any step).
     """
 
     device: str = "cpu"
@@ -109,13 +112,14 @@ class Model:
     restitution: float = 0.0
     friction: float = 0.5
     thickness: float = 0.0
+    particle_drag: float = 0.0
 
     def scaled(self, factor: float) -> Model:
         """The same scene with every length multiplied by ``factor`` (> 0, finite) and the
         masses and times kept: positions, rest lengths, thickness, plane offsets and gravity
         scale by ``factor``, velocities too, inertia tensors by ``factor**2`` (so densities
         scale by ``factor**-2`` per area and ``factor**-3`` per volume); spring stiffness and
-        damping [N/m = kg/s^2, N s/m = kg/s] are unchanged. The motion of the scaled model is the
+        damping [N/m = kg/s^2, N s/m = kg/s] and the particle drag [1/s] are unchanged. The motion of the scaled model is the
         original one scaled, which tests scale invariance (e.g. scenes at 1e-3 and 1e3)."""
         import dataclasses
 

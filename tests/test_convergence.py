@@ -1,6 +1,7 @@
 """Convergence on closed forms (small versions of ``benchmarks/convergence.py``).
 
-Ground truth is closed-form mechanics: free flight ``x0 + v0 t + g t^2 / 2``; the piecewise
+Ground truth is closed-form mechanics (or, for the swinging strip, a DOP853 integration of its
+equations of motion): free flight ``x0 + v0 t + g t^2 / 2``; the piecewise
 parabola of a restitution bounce with impact times in closed form; Newton's elastic impact on
 a free rigid body through its effective mass at the contact point.
 """
@@ -90,3 +91,13 @@ def test_exact_ballistic_update_leaves_pinned_particles_alone():
     x = s.particle_q.numpy()
     assert x[0].tolist() == [0.0, 0.0, 0.5]
     assert x[1, 2] < 0.5 - 0.1
+
+
+def test_swinging_strip_converges_first_order_to_an_independent_reference():
+    """A cloth strip pinned at one edge swings down under gravity: its largest position error
+    at 0.5 s against a DOP853 integration (rtol 1e-12) of the same equations of motion, written
+    in numpy from the model's arrays, is below 2 mm at 8 substeps and halves at 16 (first order;
+    measured 1.66e-3 / 8.05e-4 m)."""
+    e8, e16 = convergence.strip(8), convergence.strip(16)
+    assert e8 < 2e-3
+    assert e8 / e16 == pytest.approx(2.0, rel=0.1)

@@ -578,3 +578,70 @@ def test_taped_step_from_plain_states_keeps_every_intermediate_array():
     fd = (loss(FD_STEP) - loss(-FD_STEP)) / (2 * FD_STEP)
     assert grads[0] == pytest.approx(grads[1], rel=1e-12)
     assert abs(grads[0] - fd) <= FD_RTOL * abs(fd), (grads, fd)
+
+
+# ----------------------------------------------------------------------------- particle drag
+def test_particle_drag_reaches_the_terminal_velocity_and_converges_first_order():
+    """Linear air drag ``c``: ``dv/dt = g - c v``, whose exact solution from rest is
+    ``v(t) = (g / c)(1 - exp(-c t))``. The implicit update ``v1 = (v0 + h g) / (1 + h c)`` has
+    the terminal velocity ``g / c`` as its fixed point (exact to rounding after 1600 substeps at
+    ``c h = 1/48``: the distance shrinks by ``(1 + c h)^-1`` each), and its error at
+    ``t = 0.5 s`` halves with the substep (first order); in both integrators."""
+    from sim.integrator import make_integrator
+
+    c = 10.0
+    for kind in ("semi_implicit", "implicit"):
+        model = make_model(q=[[0.0, 0.0, 0.0]])
+        model.particle_drag = c
+        integ = make_integrator(model, kind)
+        s0, s1 = model.state(), model.state()
+        for _ in range(200):
+            integ.step(s0, s1, 1.0 / 60.0, 8)
+            s0, s1 = s1, s0
+        np.testing.assert_allclose(s0.particle_qd.numpy()[0], G / c, rtol=1e-12, atol=1e-15, err_msg=kind)
+
+    c, T = 2.0, 0.5
+    exact = G / c * (1.0 - math.exp(-c * T))
+    errors = []
+    for n in (100, 200, 400):
+        model = make_model(q=[[0.0, 0.0, 0.0]])
+        model.particle_drag = c
+        _, states = rollout(model, n // 10, T / n * 10, 10)
+        errors.append(np.linalg.norm(states[-1].particle_qd.numpy()[0] - exact))
+    assert errors[0] / errors[1] == pytest.approx(2.0, rel=0.02)
+    assert errors[1] / errors[2] == pytest.approx(2.0, rel=0.02)
+
+
+def test_particle_drag_gradient_is_the_closed_form():
+    """``d v_N / d v_0 = (1 + c h)^-N`` for a particle under drag (gravity adds a constant)."""
+    c, dt, substeps, steps = 3.0, 1.0 / 60.0, 4, 10
+    model = make_model(q=[[0.0, 0.0, 1.0]])
+    model.particle_drag = c
+    integ = SemiImplicitIntegrator(model)
+    s0 = model.state(requires_grad=True)
+    s0.particle_qd = wp.array([[0.5, 0.0, 0.0]], dtype=wp.vec3d, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        states = [s0]
+        for _ in range(steps):
+            s1 = model.state(requires_grad=True)
+            integ.step(states[-1], s1, dt, substeps)
+            states.append(s1)
+    out = states[-1].particle_qd
+    out.grad = wp.array([[1.0, 0.0, 0.0]], dtype=wp.vec3d)
+    tape.backward()
+    expected = (1.0 + c * dt / substeps) ** -(steps * substeps)
+    assert s0.particle_qd.grad.numpy()[0, 0] == pytest.approx(expected, rel=1e-13)
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf")])
+def test_builder_refuses_a_bad_particle_drag_naming_it(bad):
+    from sim.builder import ModelBuilder
+
+    b = ModelBuilder()
+    with pytest.raises(ValueError, match="particle_drag"):
+        b.particle_drag = bad
+    b.particle_drag = 0.5
+    b.add_particle((0.0, 0.0, 0.0))
+    assert b.finalize().particle_drag == 0.5
+    assert b.finalize().scaled(1e-3).particle_drag == 0.5  # a rate [1/s]: lengths do not change it
