@@ -140,14 +140,15 @@ STRIP = dict(cells=4, cell=0.1, density=1.0, stretch_stiffness=50.0, shear_stiff
 
 
 def _spring_ode(model):
-    """The model's equations of motion (springs along their axes with damping, gravity, pinned
-    particles at rest) as ``f(t, y)`` for ``y = (x, v)`` flattened, written here in numpy from
+    """The model's equations of motion (springs along their axes with damping, gravity, air
+    drag, pinned particles at rest) as ``f(t, y)`` for ``y = (x, v)`` flattened, written here in numpy from
     the model's arrays: an implementation independent of the simulator's kernels."""
     idx = model.spring_indices.numpy().reshape(-1, 2)
     rest = model.spring_rest_length.numpy()
     k = model.spring_stiffness.numpy()
     d = model.spring_damping.numpy()
     inv_m = model.particle_inv_mass.numpy()
+    drag = float(model.particle_drag)
     moving = (inv_m > 0.0)[:, None]
     g = np.asarray(model.gravity, dtype=np.float64)
     n = model.particle_count
@@ -161,7 +162,7 @@ def _spring_ode(model):
         force = np.zeros((n, 3))
         np.add.at(force, idx[:, 0], -tension[:, None] * u)
         np.add.at(force, idx[:, 1], tension[:, None] * u)
-        a = np.where(moving, force * inv_m[:, None] + g, 0.0)
+        a = np.where(moving, force * inv_m[:, None] + g - drag * v, 0.0)
         return np.concatenate([np.where(moving, v, 0.0).ravel(), a.ravel()])
 
     return f

@@ -8,7 +8,8 @@ model's components decide which groups exist and which may touch (cloth with its
 ``"self_collision"``, a rigid body never with itself, static meshes never with each other).
 
 1. **Proximity** (resting and sliding contact, after Bridson et al. 2002): vertex-face and
-   edge-edge pairs closer than the separation ``delta`` at the start of the substep become
+   edge-edge pairs closer than the separation ``delta`` (or up to ``PROXIMITY_HYSTERESIS``
+   beyond it, allowed to approach until they reach it) at the start of the substep become
    contacts at ``t* = 0`` with the normal of their exact closest points (a vertex over a face,
    or over its coplanar neighbours, takes the face's normal; edges between coplanar faces of a
    rigid or static surface are no features at all, :func:`collision.mesh.flat_edges`; a
@@ -107,7 +108,9 @@ PROXIMITY_HYSTERESIS) delta`` apart, not just nearer than ``delta``: resting con
 substep at ``delta`` to rounding, and a load-bearing pair that rounding put a hair beyond it
 would otherwise leave the set for a substep, drop its load and kick the cloth (a draped cloth
 crept 2.6e-5 m/s). A pair beyond ``delta`` may approach until it reaches ``delta`` at the end of
-the substep (:func:`kernels.contact.contact_geometry_kernel`), so the band changes no motion."""
+the substep (:func:`kernels.contact.contact_geometry_kernel`), so the band holds no pair that
+approaches slower than the separation speed before it touches ``delta``; one approaching faster
+bounces (restitution) up to ``1e-3 delta`` early."""
 
 DEFAULT_SEPARATION_RELATIVE = 1e-4
 """Separation used when the model's thickness is 0: this fraction of the diagonal of the
@@ -139,7 +142,8 @@ its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
 PLANE_ROUNDING_SLACK = 1e-9
 """A particle counts as a plane's proximity contact below ``(1 - PLANE_ROUNDING_SLACK) delta``:
 the integrator's plane stage leaves it at ``delta`` exactly, which the distance's rounding may
-put a hair below (rigid vertices, which only the handler holds, keep the plain ``delta``)."""
+put a hair below (rigid vertices, which only the handler holds, count up to ``(1 +
+PROXIMITY_HYSTERESIS) delta``)."""
 
 COVER_MARGIN = 4.0
 """Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
@@ -819,8 +823,9 @@ class ImpulseCollisionHandler:
     def _proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
         """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
         device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
-        closest points are nearer than ``delta`` [m], then movable vertices nearer than ``delta``
-        to a plane, with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
+        closest points are nearer than ``delta`` [m] (up to :data:`PROXIMITY_HYSTERESIS` beyond
+        it), then movable vertices nearer than ``delta`` to a plane (rigid ones up to the same
+        band), with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
         direction, or the face's normal over a face, or for touching pairs as
         :data:`TOUCHING_RELATIVE` says; target and push as
         :func:`kernels.contact.contact_geometry_kernel` says).
@@ -836,8 +841,8 @@ class ImpulseCollisionHandler:
         return self._contacts.count
 
     def _proximity_hits(self, x0, x1_pred, x0_w, delta: float) -> int:
-        """:meth:`_proximity`'s detection: the pairs nearer than ``delta`` at the start into
-        :attr:`_hits` (sorted); returns their number."""
+        """:meth:`_proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
+        delta`` at the start into :attr:`_hits` (sorted); returns their number."""
         n = self.n_vertices
         radius = None
         if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:

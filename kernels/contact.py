@@ -673,9 +673,10 @@ def contact_geometry_kernel(
       start velocity plus the forces' change up to ``t*`` (``v_start + (t*/h)(v- - v_start)``;
       the start velocity for proximity pairs) before its owner's earlier contact time, the
       current velocity after it. With ``split_push`` the target is the
-      restitution's part alone (at least 0), and the separation's part, the push
-      ``rate (delta - d) / h`` (proximity) or ``rate delta / h`` (CCD), goes to ``pushes``
-      for a solve of its own that moves positions only (:func:`push_rhs_kernel`).
+      restitution's part alone (at least 0; a pair beyond ``delta``: ``(delta - d) / h``), and
+      the separation's part, the push ``rate (delta - d) / h`` (proximity; beyond ``delta``:
+      ``(delta - d) / h``) or ``rate delta / h`` (CCD), goes to ``pushes`` for a solve of its
+      own that moves positions only (:func:`push_rhs_kernel`).
     """
     c = wp.tid()
     zero = wp.float64(0.0)
@@ -1548,8 +1549,10 @@ def sliding_friction_half_kernel(
     the start no faster than ``resting_speed`` (the separation speed ``rate delta / h`` below
     which :func:`contact_geometry_kernel` does not bounce), and the friction's own change of
     the contact's relative velocity at most :data:`SLIDING_HALF_STEP_LIMIT` times that speed:
-    an impact's friction, or a violent one's, is an impulse. The weight tapers to zero over the
-    second half of both bounds, so that no position jumps where a contact crosses one.
+    an impact's friction, or a violent one's, is an impulse. The weight tapers to zero from
+    half the approach bound to the bound, and from the change bound to twice it, so that no
+    position jumps where a contact crosses one. Both bounds scale with ``delta / h``: with a
+    thin separation or a long substep a slide is first order again (Gauss-Seidel's too).
 
     Contacts with a cloth particle keep the impulse form: their friction is light and jerky
     rather than a steady slide, and with the half step a ball thrown into the hanging cloth

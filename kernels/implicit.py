@@ -165,13 +165,15 @@ def constrained_velocity_change(
     x_target: wp.array(dtype=wp.vec3d),
     fixed: wp.array(dtype=wp.int32),
     h: wp.float64,
+    drag: wp.float64,
     g: wp.array(dtype=wp.vec3d),
 ):
-    """``g_i = (x_target_i - x0_i) / h - v0_i`` for ``fixed`` particles (the velocity change that
-    ends the substep at ``x_target``), 0 for the others."""
+    """``g_i = (1 + h drag)(x_target_i - x0_i) / h - v0_i`` for ``fixed`` particles (the velocity
+    change that ends the substep at ``x_target`` once :func:`implicit_update` has divided the
+    velocity by ``1 + h drag``), 0 for the others."""
     i = wp.tid()
     if fixed[i] != 0:
-        g[i] = (x_target[i] - x0[i]) / h - v0[i]
+        g[i] = (f64(1.0) + h * drag) * (x_target[i] - x0[i]) / h - v0[i]
     else:
         g[i] = wp.vec3d(f64(0.0), f64(0.0), f64(0.0))
 

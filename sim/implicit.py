@@ -394,7 +394,8 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             # prescribed velocity changes g of the contact particles: dv = g + delta with
             # A_S delta = S (b - A g) (S drops the fixed rows and columns)
             g = wp.zeros(n, dtype=wp.vec3d, device=d, requires_grad=requires_grad)
-            wp.launch(constrained_velocity_change, dim=n, inputs=[x0, v0, self._x_target, fixed, wp.float64(h)],
+            wp.launch(constrained_velocity_change, dim=n,
+                      inputs=[x0, v0, self._x_target, fixed, wp.float64(h), wp.float64(m.particle_drag)],
                       outputs=[g], device=d)
             a_g = wp.zeros(n, dtype=wp.vec3d, device=d, requires_grad=requires_grad)
             self._apply(x0, g, a_g, h)

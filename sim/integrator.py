@@ -92,12 +92,17 @@ class SemiImplicitIntegrator:
             springs' kick, then the exact flow of free flight under gravity: symplectic, and
             exact to rounding for ballistic motion). Plane contacts follow it (a bounce is
             second order); the collision handler's mesh contacts keep the semi-implicit
-            time-of-impact positions (first order within a contact substep).
+            time-of-impact positions (first order within a contact substep). With particle
+            drag (``Model.particle_drag``) the flight is no longer ballistic and the update is
+            first order again.
     """
 
     def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False):
         if not isinstance(exact_gravity, bool):
             raise ValueError(f"exact_gravity must be True or False, got {exact_gravity!r}")
+        drag = model.particle_drag
+        if not (isinstance(drag, (int, float)) and np.isfinite(drag) and drag >= 0.0):
+            raise ValueError(f"model.particle_drag must be a finite rate >= 0 [1/s], got {drag!r}")
         self.model = model
         self.requires_grad = requires_grad
         self.exact_gravity = exact_gravity

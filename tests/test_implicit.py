@@ -446,3 +446,27 @@ def test_contact_passes_leave_rigid_body_contacts_to_the_collision_stage():
         assert summary["contacts"] > 0
         assert summary["penetrations"] == 0
         assert summary["energy_max_ratio"] <= 1.01, (strain, summary["energy_max_ratio"])
+
+
+def test_held_particles_end_at_their_target_with_drag():
+    """The implicit integrator's contact passes hold particles at the collision stage's end
+    positions: the prescribed velocity change (``constrained_velocity_change``) followed by the
+    update that divides by ``1 + h drag`` (``implicit_update``) ends a held particle exactly at
+    its target; a free one takes the drag."""
+    import warp as wp
+
+    from kernels.implicit import constrained_velocity_change, implicit_update
+
+    h, drag = 1.0 / 480.0, 5.0
+    x0 = wp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], dtype=wp.vec3d)
+    v0 = wp.array([[0.3, -0.2, 0.1], [0.3, -0.2, 0.1]], dtype=wp.vec3d)
+    target = wp.array([[0.001, 0.0005, 0.9999], [0.0, 0.0, 0.0]], dtype=wp.vec3d)
+    fixed = wp.array([1, 0], dtype=wp.int32)
+    g = wp.zeros(2, dtype=wp.vec3d)
+    wp.launch(constrained_velocity_change, dim=2, inputs=[x0, v0, target, fixed, wp.float64(h), wp.float64(drag)],
+              outputs=[g])
+    x1, v1 = wp.zeros(2, dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d)
+    inv_mass = wp.array([1.0, 1.0], dtype=wp.float64)
+    wp.launch(implicit_update, dim=2, inputs=[x0, v0, g, inv_mass, wp.float64(h), wp.float64(drag)], outputs=[x1, v1])
+    np.testing.assert_allclose(x1.numpy()[0], target.numpy()[0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(v1.numpy()[1], v0.numpy()[1] / (1.0 + h * drag), rtol=1e-15)

@@ -278,3 +278,33 @@ def test_gradient_through_a_landing_held_by_static_friction_matches_central_diff
         assert abs(grad[j] - fd) <= 1e-5 * max(abs(fd), 1e-3), (j, grad[j], fd)
     # static friction held it: the box has stopped on the slope
     assert np.abs(res.body_qd[-1, 0].detach().numpy()).max() < 1e-9
+
+
+def test_gradient_through_a_slide_is_the_closed_form():
+    """A box sliding flat on the ground (mu 0.3) with the start velocity ``v0`` in the plane
+    moves along ``v0 / |v0|`` by ``|v0| T - mu g T^2 / 2`` until it stops (the slide's friction
+    a force over each substep: exact while sliding). After 0.2 s (it slides 0.68 s) the replayed
+    rollout's position and its Jacobian w.r.t. ``v0`` equal the closed form
+    ``T I - (mu g T^2 / 2)(I - u u^T) / |v0|`` (``u = v0 / |v0|``; the friction's direction
+    turns with ``v0``, which the half step of the positions carries)."""
+    import torch
+
+    from sim.rollout import rollout
+
+    mu, steps = 0.3, 12
+    b = P._builder(friction=mu)
+    P._add_box(b, P.BOX_HALF, (0.0, 0.0, P.BOX_HALF + P.THICKNESS))
+    b.add_ground_plane()
+    model = b.finalize()
+    v0 = np.array([1.5, 0.5])
+    qd = torch.tensor([[0.0, 0.0, 0.0, v0[0], v0[1], 0.0]], dtype=torch.float64, requires_grad=True)
+    res = rollout(model, steps, P.DT, SUBSTEPS, body_qd=qd)
+    assert res.stats["contact_substeps"] >= 1 and res.stats["failsafe_substeps"] == 0
+    T = steps * P.DT
+    speed = np.linalg.norm(v0)
+    u = v0 / speed
+    x = res.body_q[-1, 0, :2]
+    np.testing.assert_allclose(x.detach().numpy(), u * (speed * T - 0.5 * mu * P.GRAVITY * T * T), rtol=0, atol=1e-12)
+    jacobian = np.stack([torch.autograd.grad(x[i], qd, retain_graph=True)[0].numpy()[0, 3:5] for i in range(2)])
+    expected = T * np.eye(2) - 0.5 * mu * P.GRAVITY * T * T * (np.eye(2) - np.outer(u, u)) / speed
+    np.testing.assert_allclose(jacobian, expected, rtol=0, atol=1e-10)
