@@ -544,7 +544,8 @@ class ContactReplay:
         with paused_tape():
             self._launch(K.slip_reversed_kernel, dim=c,
                       inputs=[total, normals, directions, cu, pairs_w, weights, self.vertex_type, self.vertex_owner,
-                              lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                              lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist),
+                              wp.float64(SLIP_REVERSAL)],
                       outputs=[rejected], device=self.device)
         if int(rejected.numpy()[0]):
             return None

@@ -1393,6 +1393,16 @@ def sliding_impulses_kernel(
     impulses[c] = j
 
 
+@wp.func
+def stops_sliding(j: wp.vec3d, n: wp.vec3d, vrel: wp.vec3d, s: wp.vec3d, reversal: wp.float64) -> bool:
+    """Whether a contact sliding along ``s`` with impulse ``j`` (normal ``n``) sticks instead:
+    it pulls (``j . n < 0``: its friction ``-mu j_n s`` would push along the slip), or its slip
+    after the solve (relative velocity ``vrel``) turns back against ``s`` (``v_t . s <
+    -reversal``)."""
+    vt = vrel - wp.dot(vrel, n) * n
+    return wp.dot(j, n) < wp.float64(0.0) or wp.dot(vt, s) < -reversal
+
+
 @wp.kernel(enable_backward=False)
 def slip_reversed_kernel(
     impulses: wp.array(dtype=wp.vec3d),
@@ -1406,19 +1416,17 @@ def slip_reversed_kernel(
     lever: wp.array(dtype=wp.vec3d),
     particle_qd: wp.array(dtype=wp.vec3d),
     body_qd: wp.array(dtype=wp.spatial_vectord),
+    reversal: wp.float64,
     count: wp.array(dtype=wp.int32),
 ):
-    """Counts the active contacts of a sliding solve that pull (``j . n < 0``), that did not slip
-    (no direction: no friction in the solve) or whose slip after it no longer runs along the
-    direction friction opposed (it stopped or turned back: the contact sticks); a decision."""
+    """Counts the active contacts of a sliding solve that did not slip (no direction: no
+    friction in the solve) or that stop sliding (:func:`stops_sliding`); a decision."""
     c = wp.tid()
     if contact_unknown[c] < 0:
         return
-    n = normals[c]
-    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
-    vt = vrel - wp.dot(vrel, n) * n
     s = directions[c]
-    if wp.dot(impulses[c], n) < wp.float64(0.0) or wp.dot(vt, s) < wp.float64(0.0) or wp.length_sq(s) == wp.float64(0.0):
+    vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
+    if wp.length_sq(s) == wp.float64(0.0) or stops_sliding(impulses[c], normals[c], vrel, s, reversal):
         wp.atomic_add(count, 0, 1)
 
 
@@ -1632,10 +1640,9 @@ def slip_update_kernel(
     """Which active contacts of a frictional solve (:func:`sticking_delassus_kernel`) stick and
     which slide next, a decision (``codes``, for :func:`slip_directions_from_impulses_kernel`).
     A sticking contact (``slip[c]`` zero) that pushes (``j_n > 0``) and whose impulse leaves its
-    cone (``|j_t| > mu j_n``) starts sliding (``SLIP_START``); a sliding one that pulls, or whose
-    slip after the solve (``particle_qd``, ``body_qd``) runs against its direction ``s``
-    (``v_t . s < -reversal``), sticks (``SLIP_STICK``: sliding friction ``-mu j_n s`` with
-    ``j_n < 0`` would push along the slip); the others keep their state. ``counts[0]`` counts
+    cone (``|j_t| > mu j_n``) starts sliding (``SLIP_START``); a sliding one that stops sliding
+    (:func:`stops_sliding`, with its slip after the solve from ``particle_qd``, ``body_qd``)
+    sticks (``SLIP_STICK``); the others keep their state. ``counts[0]`` counts
     the changes. A sticking contact that pulls is the caller's active set's to drop."""
     c = wp.tid()
     zero = wp.float64(0.0)
@@ -1654,7 +1661,7 @@ def slip_update_kernel(
                 wp.atomic_add(counts, 0, 1)
         else:
             vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
-            if jn < zero or wp.dot(vrel - wp.dot(vrel, n) * n, s) < -reversal:
+            if stops_sliding(j, n, vrel, s, reversal):
                 code = SLIP_STICK
                 wp.atomic_add(counts, 0, 1)
     codes[c] = code
