@@ -54,8 +54,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, upload, zero
-from collision.roots import init_warp
+from core.buffers import RecordedLaunches, host, upload, zero
+from core.device import init_warp
 from kernels import broad_phase as _k
 
 __all__ = ["PAD_ABS", "PAD_REL", "BroadPhase", "candidate_pairs", "mesh_edges"]

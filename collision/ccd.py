@@ -26,8 +26,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, read_only, upload, zero
-from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots, init_warp
+from core.buffers import RecordedLaunches, host, read_only, upload, zero
+from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots
+from core.device import init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
 from kernels.contact import pair_proximity_kernel

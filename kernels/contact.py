@@ -539,7 +539,7 @@ def pair_scale(y0: wp.vec3d, y1: wp.vec3d, y2: wp.vec3d, y3: wp.vec3d) -> wp.flo
 def flat_edge_index(a: int, b: int, flat_keys: wp.array(dtype=wp.int64), base: wp.int64) -> int:
     """The row of the edge ``(a, b)`` in the sorted ``flat_keys`` (``lo * base + hi``), or -1
     when it is not an edge between two coplanar faces of a rigid or static surface
-    (:func:`collision.mesh.flat_edges`)."""
+    (:func:`sim.collision_mesh.flat_edges`)."""
     key = wp.int64(wp.min(a, b)) * base + wp.int64(wp.max(a, b))
     lo = int(0)
     hi = flat_keys.shape[0]

@@ -6,7 +6,7 @@ A substep's *hits* (one detection pass: the proximity pairs at the start, or one
 crossings) are appended by the detection kernels through counters, then put into one canonical
 order (:func:`hit_keys_kernel`, :func:`sort_keys_kernel` and :func:`gather_hits_kernel`:
 ascending pair keys, the same order whatever the thread schedule or the broad phase's candidate
-order). The *contact set* (:class:`collision.contacts.Contacts`) grows by those hits
+order). The *contact set* (:class:`sim.contact.contacts.Contacts`) grows by those hits
 (:func:`add_contacts_kernel`, sequential: new pairs are appended in the hits' order, a pair
 already in the set takes the new geometry and the earlier time). A pair is ``(kind, a, b)``:
 kind 0 vertex-face ``(vertex, face)``, 1 edge-edge ``(edge, edge)``, 2 vertex-plane

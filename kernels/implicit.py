@@ -10,7 +10,7 @@ with ``Kx = -df/dx`` and ``Kd = -df/dv`` of the springs. Per spring with ``d = x
 part clamped at 0 for a compressed spring, so the matrix stays positive semi-definite: Choi & Ko
 2002) and ``Kd = kd n n^T``, acting on ``p_i - p_j``. Pinned particles (``inv_mass == 0``) keep
 ``dv = 0``: their rows are the identity and their columns are dropped, so the system is symmetric
-positive definite and conjugate gradients apply (:mod:`sim.implicit`).
+positive definite and conjugate gradients apply (:mod:`sim.integrators.implicit`).
 
 Every kernel writes a fresh output (``y`` zeroed by the caller before the atomic adds), so the
 operator can be replayed on a ``wp.Tape``: the solve's adjoint differentiates

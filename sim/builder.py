@@ -28,7 +28,7 @@ import numpy as np
 import warp as wp
 
 from sim.model import COMPONENTS, Model
-from sim.rotation import quat_to_matrix
+from core.rotation import quat_to_matrix
 
 __all__ = ["MassProperties", "ModelBuilder", "mesh_mass_properties", "quat_from_matrix", "quat_to_matrix"]
 
@@ -892,7 +892,7 @@ class ModelBuilder:
         Returns:
             The model.
         """
-        from collision.roots import init_warp  # the project's shared, quiet wp.init()
+        from core.device import init_warp  # the project's shared, quiet wp.init()
 
         init_warp()
 

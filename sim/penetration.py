@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from collision.mesh import CollisionMesh
+from sim.collision_mesh import CollisionMesh
 from kernels import penetration as _k
 from sim.model import Model, State
 
@@ -176,7 +176,7 @@ def _winding_and_distance(
     x: np.ndarray, query_point: np.ndarray, query_solid: np.ndarray, faces: np.ndarray, face_start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Runs :func:`_k.winding_distance_kernel` on the CPU; returns (winding, distance) numpy."""
-    from collision.roots import init_warp
+    from core.device import init_warp
 
     init_warp()
     n = len(query_point)

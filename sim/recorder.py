@@ -59,7 +59,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from collision.mesh import CollisionMesh
+from sim.collision_mesh import CollisionMesh
 from sim.logging import RerunLogger
 from sim.model import Model, State
 from sim.penetration import state_positions, vertex_components

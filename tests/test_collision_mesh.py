@@ -1,4 +1,4 @@
-"""collision.mesh.CollisionMesh: one numbering of the collidable vertices for the response, the
+"""sim.collision_mesh.CollisionMesh: one numbering of the collidable vertices for the response, the
 penetration checker and the recorder; posing on the host and by the Warp kernel.
 
 Ground truth: the builder's inputs (box corners, rotations written out with cos/sin)."""
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from collision.mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, CollisionMesh
+from sim.collision_mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, CollisionMesh
 from sim.builder import ModelBuilder
 from sim.mesh_io import box_mesh
 
@@ -65,7 +65,7 @@ def test_device_pose_equals_host_positions_and_lever_arms():
 
 
 def test_response_checker_and_recorder_share_one_mesh_numbering(tmp_path):
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from sim.penetration import PenetrationChecker
     from sim.recorder import SimRecorder
 

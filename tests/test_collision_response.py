@@ -10,11 +10,11 @@ import pytest
 import warp as wp
 
 from sim.builder import ModelBuilder
-from collision.response import ImpulseCollisionHandler
-from sim.integrator import SemiImplicitIntegrator
+from sim.contact.response import ImpulseCollisionHandler
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
-from sim.rotation import quat_rotate
+from core.rotation import quat_rotate
 
 wp.init()
 
@@ -105,7 +105,7 @@ def test_fast_ball_does_not_tunnel_through_a_thin_plate():
 def test_rigid_box_rests_on_ground_plane(differentiable):
     """A spinning box dropped on ``add_ground_plane()`` comes to rest on it (its vertices are
     vertex-plane contacts of the mesh pipeline); before, it fell through (z = -4.4 m after 1 s)."""
-    from sim.integrator import SemiImplicitIntegrator
+    from sim.integrators.semi_implicit import SemiImplicitIntegrator
     from sim.mesh_io import box_mesh
 
     b = ModelBuilder()
@@ -217,8 +217,8 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
     warp's arrays that allocates; the Gauss-Seidel path creates no array object at all). Ten
     steps after a warm-up are run twice from the same state (bit-identical runs): the second
     time they allocate nothing."""
-    from sim.integrator import copy_state
-    from warp._src.types import array as warp_array
+    from sim.integrators.semi_implicit import copy_state
+    warp_array = wp.array  # the class every Warp array is made by
 
     b = ModelBuilder()
     verts, tris = box_mesh(0.2)
@@ -273,11 +273,11 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
 
 def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
     """A scene whose broad-phase queries find few candidate pairs (a cloth swinging from two
-    corners over a static box) widens its cover (collision.response.COVER_SCALES): fewer
+    corners over a static box) widens its cover (sim.contact.response.COVER_SCALES): fewer
     queries, and the end state bit for bit that of a run whose cover keeps its narrowest
     margin (the contacts do not depend on the cover). A fresh query with many candidates
     narrows it again."""
-    import collision.response as response
+    import sim.contact.response as response
 
     def run(scales):
         monkeypatch.setattr(response, "COVER_SCALES", scales)
@@ -324,7 +324,7 @@ def test_resting_contact_a_hair_beyond_the_separation_is_kept(differentiable, be
     contact that may approach until it reaches ``delta``: the particle ends at ``delta`` (a
     resting contact that rounding put a hair beyond ``delta`` keeps its load). Beyond the band
     it falls freely (the band holds nothing that is not about to touch)."""
-    from collision.response import PROXIMITY_HYSTERESIS
+    from sim.contact.response import PROXIMITY_HYSTERESIS
 
     assert PROXIMITY_HYSTERESIS == 1e-3
     delta, h = 1e-3, 1.0 / 480.0

@@ -186,7 +186,7 @@ def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
 def test_interrupted_run_keeps_a_readable_partial_recording(tmp_path, monkeypatch, capsys):
     """Ctrl-C during stepping: exit code 130 and the frames recorded so far stay readable."""
     from scenes.__main__ import main
-    from sim.integrator import SemiImplicitIntegrator
+    from sim.integrators.semi_implicit import SemiImplicitIntegrator
 
     real_step = SemiImplicitIntegrator.step
     calls = {"n": 0}
@@ -270,7 +270,7 @@ def test_float32_ccd_decisions_keep_rigid_toss_penetration_free():
     summary, _ = sim_common.simulate(rigid_toss.build, args, None, name="rigid_toss", progress=False)
     assert summary["ccd_options"] == {"precision": "float32", "max_iterations": 8}
     # and the handler's narrow phase really runs the float32 variant
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from scenes.sim_common import build_model, ccd_options
 
     narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args))._narrow

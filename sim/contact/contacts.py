@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import host
+from core.buffers import host
 
 
 class ContactLimitExceeded(RuntimeError):

@@ -1,7 +1,7 @@
 """The taped half of the collision response: "decide, then replay" (design.md).
 
 :class:`ContactReplay` owns the Warp launches that turn the decisions of
-:class:`collision.response.ImpulseCollisionHandler` (which pairs are contacts, from which root
+:class:`sim.contact.response.ImpulseCollisionHandler` (which pairs are contacts, from which root
 slot, which contacts carry an impulse and whether they stick or slide, which contact comes first
 for each particle or body) into the new velocities and positions. Every launch here is recorded on
 the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differentiable:
@@ -33,10 +33,11 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
-import warp._src.context as _warp_context
 
-from collision.buffers import Arena, RecordedLaunches, upload
-from collision.contacts import ContactLimitExceeded
+from core.buffers import Arena, RecordedLaunches, upload
+from core.tape import active_tape, any_tape, paused_tape
+from core.warp_adapter import is_frozen, mark_frozen
+from sim.contact.contacts import ContactLimitExceeded
 from kernels import contact as K
 from kernels.contact_set import active_unknowns_kernel
 
@@ -54,7 +55,7 @@ dense solves of ``n`` unknowns (1e11 is about 20 s on one CPU thread). Measured 
 substeps: 3e8 in the three simulation scenes over 300 steps, 4.2e10 for a ball at 200 m/s into
 a hanging cloth, 2.4e10 for a cloth hitting a box in one implicit substep per step. A substep
 far too long for the motion (``cloth_drop`` at ``--dt 1`` with the implicit integrator: 1.2e11
-in its first heavy substep) stops with :class:`collision.contacts.ContactLimitExceeded`."""
+in its first heavy substep) stops with :class:`sim.contact.contacts.ContactLimitExceeded`."""
 
 PUSH_OVERSHOOT = 100.0
 """The push's solve (:meth:`ContactReplay._pushed`) is redone with
@@ -86,39 +87,6 @@ SLIP_REVERSAL = 1e-9
 this [m/s] sticks instead (rounding of a slip that stopped exactly stays far below)."""
 
 
-def active_tape():
-    """The ``wp.Tape`` currently recording (None outside ``with tape:``)."""
-    runtime = _warp_context.runtime
-    return runtime.tape if runtime is not None else None
-
-
-class paused_tape:
-    """Context manager: launches inside are not recorded on the active tape (for trial solves
-    whose results are thrown away; only the final, consistent solve is replayed backwards)."""
-
-    paused: list = []
-    """The tapes paused now (innermost last): a tape exists even while none records."""
-
-    def __enter__(self):
-        self._tape = active_tape()
-        if self._tape is not None:
-            _warp_context.runtime.tape = None
-            paused_tape.paused.append(self._tape)
-        return self._tape
-
-    def __exit__(self, *exc):
-        if self._tape is not None:
-            paused_tape.paused.pop()
-            _warp_context.runtime.tape = self._tape
-        return False
-
-
-def any_tape() -> bool:
-    """Whether a ``wp.Tape`` is recording or paused (:class:`paused_tape`): arrays made now may
-    still be read by its backward (a paused trial's result can feed a later recorded launch)."""
-    return active_tape() is not None or bool(paused_tape.paused)
-
-
 class ContactReplay:
     """Device arrays and taped launches of the collision response of one model.
 
@@ -132,7 +100,7 @@ class ContactReplay:
         planes: (K, 4) plane normals and offsets.
         device: Warp device.
         flat_edges, flat_opposites: (K, 2) the flat edges of rigid and static surfaces and the
-            third vertices of their two faces (:class:`collision.mesh.CollisionMesh`).
+            third vertices of their two faces (:class:`sim.collision_mesh.CollisionMesh`).
     """
 
     def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
@@ -140,7 +108,7 @@ class ContactReplay:
                  flat_opposites=None):
         self.device = device
         self.n_vertices = len(vertex_type)
-        # the flat edges (collision.mesh.flat_edges) as sorted keys lo * base + hi, for the
+        # the flat edges (sim.collision_mesh.flat_edges) as sorted keys lo * base + hi, for the
         # contact geometry's look-up (one key that matches no edge when there are none)
         self.flat_key_base = self.n_vertices + 1
         flat = np.zeros((0, 2), np.int64) if flat_edges is None else np.sort(np.asarray(flat_edges, np.int64), axis=1)
@@ -191,7 +159,7 @@ class ContactReplay:
     # ------------------------------------------------------------------ helpers
     def _launch(self, kernel, dim, inputs=(), outputs=(), device=None) -> None:
         """``wp.launch`` of ``kernel`` on this model's device; while no tape records or is paused,
-        through a recorded command (:class:`collision.buffers.RecordedLaunches`: Warp's argument
+        through a recorded command (:class:`core.buffers.RecordedLaunches`: Warp's argument
         packing costs more than most of these kernels on a few hundred contacts)."""
         if any_tape():
             wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
@@ -211,7 +179,7 @@ class ContactReplay:
         """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh while a tape
         records or is paused (its backward reads every array it recorded, and a paused trial's
         result may feed a recorded launch; with a gradient array when ``grad`` and recording),
-        else the next one of this call from the arena (:class:`collision.buffers.Arena`: a
+        else the next one of this call from the arena (:class:`core.buffers.Arena`: a
         response without gradients allocates no memory once its largest sizes have been met),
         zeroed unless ``zero`` is False (the caller fills it)."""
         if any_tape():
@@ -237,14 +205,13 @@ class ContactReplay:
         """``a`` for a launch that the tape may record: a fresh copy of its first ``n`` rows
         while a tape records or is paused (``a`` is a buffer of the decisions that a later call
         overwrites, and the tape's backward reads what its launches read), else ``a`` itself."""
-        if not any_tape() or getattr(a, "_frozen", False):
+        if not any_tape() or is_frozen(a):
             return a
         out = wp.empty(max(n, 1), dtype=a.dtype, device=self.device)
         if n:
             with paused_tape():
                 wp.copy(out, a, count=n)
-        out._frozen = True  # a copy of its own: frozen() passes it on as it is
-        return out
+        return mark_frozen(out)  # a copy of its own: frozen() passes it on as it is
 
     # ------------------------------------------------------------------ stages
     def pose_start(self, particle_q, body_q):
@@ -284,7 +251,7 @@ class ContactReplay:
         ``v0_p``, ``v0_b``: the velocities at the start of the substep (the forces' change
         before ``t*`` is reflected, not the change after it). ``rows``: device arrays
         (``vertices`` (vec4i), ``kind``, ``source``, ``detected`` (fraction
-        of the substep), ``plane``; :class:`collision.contacts.Hits`). ``particle_time`` /
+        of the substep), ``plane``; :class:`sim.contact.contacts.Hits`). ``particle_time`` /
         ``body_time``: device times of impact already assigned to each owner (inf for none).
         ``nearest_slot``: take the cubic's root nearest the detected fraction rather than the one
         in the ``source`` slot (for a narrow phase other than the float64 one as written, whose
@@ -339,7 +306,7 @@ class ContactReplay:
         Args:
             contacts: (toi, targets, weights, normals, pushes) device arrays of the whole set (C,).
             vertices, kinds: the set's device (C,) vec4i vertex indices and int32 kinds
-                (:class:`collision.contacts.Contacts`); ``count`` = C.
+                (:class:`sim.contact.contacts.Contacts`); ``count`` = C.
             active: device int32 (C,): the contacts whose normal relative velocity must end at
                 their target (the others get no impulse; fresh while a tape records).
             lever, inv_inertia_w: start-pose lever arms and world inverse inertia tensors.

@@ -1,7 +1,7 @@
 """The collidable surface of a model, built once: :class:`CollisionMesh`.
 
 One numbering of every vertex that can touch something, shared by the collision response
-(:mod:`collision.response`), the penetration checker (:mod:`sim.penetration`) and the recorder
+(:mod:`sim.contact.response`), the penetration checker (:mod:`sim.penetration`) and the recorder
 (:mod:`sim.recorder`), after ipc-toolkit's ``CollisionMesh``:
 
 * vertices ``[0, P)``: the particles (cloth and loose particles, in the model's order);
@@ -24,7 +24,7 @@ import warp as wp
 
 from collision.broad_phase import mesh_edges
 from kernels.contact import pose_vertices_kernel
-from sim.rotation import quat_to_matrix
+from core.rotation import quat_to_matrix
 
 VERTEX_PARTICLE, VERTEX_BODY, VERTEX_STATIC = 0, 1, 2
 

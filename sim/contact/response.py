@@ -1,6 +1,6 @@
 """Collision handling for the stepper: proximity impulses, CCD, impulses at the time of impact.
 
-:class:`ImpulseCollisionHandler` is plugged into :class:`sim.integrator.SemiImplicitIntegrator`
+:class:`ImpulseCollisionHandler` is plugged into :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator`
 as its ``collision_handler``. Per substep of length ``h`` it receives the start State and the
 predicted end State (velocities ``v-`` after forces) and works on one set of collidable vertices:
 cloth particles, rigid-body surface vertices (body frame -> world) and static mesh vertices; the
@@ -12,7 +12,7 @@ model's components decide which groups exist and which may touch (cloth with its
    beyond it, allowed to approach until they reach it) at the start of the substep become
    contacts at ``t* = 0`` with the normal of their exact closest points (a vertex over a face,
    or over its coplanar neighbours, takes the face's normal; edges between coplanar faces of a
-   rigid or static surface are no features at all, :func:`collision.mesh.flat_edges`; a
+   rigid or static surface are no features at all, :func:`sim.collision_mesh.flat_edges`; a
    touching pair whose closest points give no direction joins no set). Their impulses keep the
    normal relative velocity at least ``-e v_n`` (restitution ``e``, when they approach faster
    than the separation speed; ``v_n`` at the start) and restore ``SEPARATION_RATE`` of the
@@ -49,7 +49,7 @@ read the broad phase's candidate pairs where it left them and append their hits 
 counters; the hits are put in pair order (the same contacts in the same order whatever the
 thread schedule or the candidates' order), matched to the contact set, given their geometry,
 tested for approach and added to a fixed-capacity device contact set
-(:class:`collision.contacts.Contacts`) by the kernels of :mod:`kernels.contact_set`; the solve
+(:class:`sim.contact.contacts.Contacts`) by the kernels of :mod:`kernels.contact_set`; the solve
 and the plan read that set where it is. The host sees only counts (hits, approaching hits,
 contacts, Gauss-Seidel sweeps, the active set's changes), the per-vertex positions of the
 broad-phase cover's box tests (views of the device arrays on the CPU) and, in the rare
@@ -60,7 +60,7 @@ Gauss-Seidel impulses; it reuses its buffers, so stepping allocates no Warp arra
 is measured per scene in ``benchmarks/sim.py``), and by default the replayed one (design.md
 "Differentiating collision response: decide, then replay"): the same decisions off the tape,
 then ``t*`` through the mollified roots, the exact impulse solve, the time-of-impact integration
-and the impact zones' rigid motion as taped Warp launches (:mod:`collision.replay`). Its
+and the impact zones' rigid motion as taped Warp launches (:mod:`sim.contact.replay`). Its
 friction is exact for the two common regimes: every contact sticking (one joint solve of the
 normal and tangential impulses: a box stays put on a slope steeper than it would be without
 friction) or every contact sliding (Coulomb's ``mu j_n`` against the slip in the same solve as
@@ -78,15 +78,16 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from collision.buffers import RecordedLaunches, Staging, copy_rows, host, zero
+from core.buffers import RecordedLaunches, Staging, copy_rows, host, zero
 from collision.ccd import ONES3, CandidateNarrowPhase
-from collision.contacts import ContactLimitExceeded, Contacts, Hits
+from sim.contact.contacts import ContactLimitExceeded, Contacts, Hits
 from kernels.variants import check_settings as check_ccd_settings
-from collision.mesh import VERTEX_BODY as _BODY
-from collision.mesh import VERTEX_PARTICLE as _PARTICLE
-from collision.mesh import VERTEX_STATIC as _STATIC
-from collision.mesh import CollisionMesh
-from collision.replay import ContactReplay, active_tape, paused_tape
+from sim.collision_mesh import VERTEX_BODY as _BODY
+from sim.collision_mesh import VERTEX_PARTICLE as _PARTICLE
+from sim.collision_mesh import VERTEX_STATIC as _STATIC
+from sim.collision_mesh import CollisionMesh
+from sim.contact.replay import ContactReplay
+from core.tape import active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact import (contact_geometry_kernel, planned_substep_kernel, pose_positions_kernel,
                              pose_substep_kernel, solve_contacts_kernel)
@@ -242,7 +243,7 @@ class _CallContacts:
     loop does not.
 
     Args:
-        cs: the call's contact set: a device :class:`collision.contacts.Contacts` (read where it
+        cs: the call's contact set: a device :class:`sim.contact.contacts.Contacts` (read where it
             is until :meth:`materialize` copies it: the handler calls that before the next call
             reuses the buffers), or None.
         x0, x1: device arrays of the vertices' positions (V + 1, 3) at the start and the
@@ -694,7 +695,7 @@ class ImpulseCollisionHandler:
                 # at rest when the zone holds a static or pinned vertex) over the whole substep
                 failsafe = True
                 if zones is None:
-                    zones = _ImpactZones(P, B, self.particle_inv_mass)
+                    zones = ImpactZones(P, B, self.particle_inv_mass)
                 idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
                 if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
                     break  # only contacts inside rigidly moving zones remain (rounding)
@@ -968,10 +969,10 @@ class ImpulseCollisionHandler:
             self._launches.launch("owner_times", owner_times_kernel, cs.count, [
                 cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, particle_time, body_time])
 
-    def _zone_motion(self, zones: "_ImpactZones", state_in: State, vel):
+    def _zone_motion(self, zones: "ImpactZones", state_in: State, vel):
         """Sets the velocities ``vel`` of the impact zones' members to their zone's
         momentum-conserving rigid motion (the replay's kernels,
-        :meth:`collision.replay.ContactReplay.zone_velocities`, off the tape) and returns the
+        :meth:`sim.contact.replay.ContactReplay.zone_velocities`, off the tape) and returns the
         zones' member flags per particle / body (device int32 arrays)."""
         P, B, R, m = self.n_particles, self.n_bodies, self._replay, self.model
         particle_zone, body_zone, n_zones = zones.labels()
@@ -986,7 +987,7 @@ class ImpulseCollisionHandler:
             copy_rows(vel[1], vb, B)
         return self._zone_flags(zones)
 
-    def _zone_flags(self, zones: "_ImpactZones"):
+    def _zone_flags(self, zones: "ImpactZones"):
         """The impact zones' members per particle / body (device int32 arrays, 1 in a zone)."""
         put = self._staging.put
         return (put("zone_p", zones.particles.astype(np.int32), wp.int32) if self.n_particles else self._no_zone_p,
@@ -994,14 +995,14 @@ class ImpulseCollisionHandler:
 
     def _call_replayed(self, state_in: State, state_pred: State, h: float) -> State | None:
         """The response as decisions and a taped replay, both on the device
-        (:class:`collision.replay.ContactReplay`): the result is the replay's, exact for the
+        (:class:`sim.contact.replay.ContactReplay`): the result is the replay's, exact for the
         decided contact set (impulses from the active set's equations, not Gauss-Seidel sweeps),
         and differentiable when a ``wp.Tape`` is recording. The decisions (the contact set, the
         root slots, the active set and its repairs, the earliest contact per owner) are made by
         the kernels of :mod:`kernels.contact_set` off the tape; the launches that depend smoothly
         on the state are recorded. The fail-safe's impact zones are taped too: their membership is
         decided on the host from the approaching hits (rare), their momentum-conserving rigid
-        motion is replayed (:meth:`collision.replay.ContactReplay.zone_velocities`), so every
+        motion is replayed (:meth:`sim.contact.replay.ContactReplay.zone_velocities`), so every
         substep is taped and ``untaped_substeps`` stays 0."""
         R = self._replay
         R.begin()  # the previous call's results were copied by the integrator: its arrays are free
@@ -1166,7 +1167,7 @@ class ImpulseCollisionHandler:
             if iteration >= self.max_iterations:
                 failsafe = True
                 if zones is None:
-                    zones = _ImpactZones(P, B, self.particle_inv_mass)
+                    zones = ImpactZones(P, B, self.particle_inv_mass)
                 idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
                 if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
                     break
@@ -1217,7 +1218,7 @@ class ImpulseCollisionHandler:
         return bool(host(counter)[0])
 
 
-class _ImpactZones:
+class ImpactZones:
     """Union-find over particles (nodes 0..P-1), bodies (P..P+B-1) and "the world" (P+B: static
     vertices and pinned particles) for the rigid-impact-zone fail-safe of one substep."""
 
@@ -1267,7 +1268,7 @@ class _ImpactZones:
         return bool(grew)
 
     def labels(self):
-        """The zones as ints for the taped replay (:meth:`collision.replay.ContactReplay.zone_velocities`):
+        """The zones as ints for the taped replay (:meth:`sim.contact.replay.ContactReplay.zone_velocities`):
         per particle and per body -1 (in no zone), -2 (in the zone touching the world: at rest)
         or the index of its free zone; and the number of free zones."""
         particle_zone = np.full(self.P, -1, dtype=np.int64)
