@@ -31,7 +31,7 @@ from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES, cubic_roots
 from core.device import init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
-from kernels.contact import pair_proximity_kernel
+from kernels.decide import pair_proximity_kernel
 
 __all__ = ["CandidateNarrowPhase", "MeshCCDResult", "edge_edge_ccd", "edge_edge_roots", "mesh_ccd", "point_triangle_ccd", "point_triangle_roots"]
 
@@ -435,7 +435,7 @@ class CandidateNarrowPhase:
 
         ``motion_radius`` ((V,) [m], optional): also keep, for later :meth:`ccd` calls from ``x``
         at thickness 0 in which every vertex moves at most its radius, the candidates they can
-        hit (:func:`kernels.contact.pair_proximity_kernel`), so that those calls test only them.
+        hit (:func:`kernels.decide.pair_proximity_kernel`), so that those calls test only them.
         A collision response's rounds move the vertices about as predicted; most candidates of
         resting contact lie farther apart than that. Default narrow phase only (a variant's
         tolerances may reach further) and only when the cover answers this call.
@@ -443,7 +443,7 @@ class CandidateNarrowPhase:
         Returns:
             (kind (K,), pair (K, 2), offset (K, 3): closest point of the first primitive minus
             the second's, weights (K, 4): the closest points' signed weights, side A positive,
-            side B negative (:func:`kernels.contact.pair_weights`), vertices (K, 4) int64: the
+            side B negative (:func:`kernels.contact_geometry.pair_weights`), vertices (K, 4) int64: the
             pairs' vertex indices, vertex-face ``(p, a, b, c)`` / edge-edge ``(a0, a1, b0,
             b1)``). Without a pair the arrays are shared read-only empties.
         """

@@ -17,8 +17,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.contact import (PAIR_VERTEX_PLANE, TIME_DETECTED, TIME_PLANE, TIME_START, VERTEX_BODY,
-                             VERTEX_PARTICLE, vertex_time, vertex_velocity)
+from kernels.pose import (PAIR_VERTEX_PLANE, TIME_DETECTED, TIME_PLANE, TIME_START, VERTEX_BODY, VERTEX_PARTICLE, vertex_time, vertex_velocity)
 
 KEY_NONE = wp.constant(wp.int64(9223372036854775807))
 """The key of a hit left out (sorts after every pair's key)."""
@@ -138,7 +137,7 @@ def gather_hits_kernel(
     """Hit ``tid`` in sorted order (``order``: :func:`sort_keys_kernel`'s values) from the narrow
     phase's buffers or the vertex-plane ones: its kind, pair, vertex indices (vertex-plane: the
     vertex and three times the dummy static vertex), detected time (fraction of the substep),
-    source (:func:`kernels.contact.contact_geometry_kernel`'s) and plane index (0 for mesh
+    source (:func:`kernels.contact_geometry.contact_geometry_kernel`'s) and plane index (0 for mesh
     pairs); ``row`` (the hit's row in the contact set, :func:`match_contacts_kernel`) is reset
     to -1. ``time_mode``: 0 every hit is a proximity contact at ``t* = 0`` (source
     ``TIME_START``); 1 a root's slot (1-3) for the narrow phase's hits at a root of the cubic,
@@ -296,7 +295,7 @@ def approach_kernel(
     approaching: wp.array(dtype=wp.int32),
 ):
     """Whether CCD hit ``tid`` (time ``toi`` [s], weights and normal at it:
-    :func:`kernels.contact.contact_geometry_kernel`) approaches, counted in ``counter[0]``: its
+    :func:`kernels.contact_geometry.contact_geometry_kernel`) approaches, counted in ``counter[0]``: its
     normal relative velocity at ``t*`` (each vertex's ``v-`` before its owner's earliest
     contact time, the current velocity from then on), or its mean over the straight paths
     ``x0 -> x1`` that the CCD checked, is below ``-approach_eps`` times the largest vertex
@@ -433,7 +432,7 @@ def add_contacts_kernel(
     the rows after the call.
 
     With ``record_merge`` the decisions the taped replay repeats
-    (:func:`kernels.contact.merge_contacts_kernel`) are written per row of the grown set:
+    (:func:`kernels.contact_geometry.merge_contacts_kernel`) are written per row of the grown set:
     ``merge_hit`` the hit a row takes its geometry from (-1: unchanged), ``keep_toi`` /
     ``keep_target`` whether it kept its own time / target."""
     zero = wp.float64(0.0)
@@ -619,7 +618,7 @@ def owner_rows_finish_kernel(
     body_row: wp.array(dtype=wp.int32),
 ):
     """Each particle's / body's contact row for the time-of-impact integration
-    (:func:`kernels.contact.time_of_impact_kernel`): -1 none, -2 a member of an impact
+    (:func:`kernels.integrate.time_of_impact_kernel`): -1 none, -2 a member of an impact
     zone (nonzero zone flag), else the row of :func:`owner_rows_kernel`'s key."""
     i = wp.tid()
     if i < particle_count:
@@ -811,7 +810,7 @@ def friction_share_kernel(
     share: wp.array(dtype=wp.float64),
 ):
     """Per contact: one over the largest number of active contacts that any particle or body it
-    moves takes part in (:func:`kernels.contact.friction_impulses_kernel` applies the friction
+    moves takes part in (:func:`kernels.friction.friction_impulses_kernel` applies the friction
     impulses of one pass together)."""
     c = wp.tid()
     q = vertices[c]

@@ -47,6 +47,8 @@ the arrays it read), so a ``wp.Tape`` over a rollout can replay the kernels back
 
 import warp as wp
 
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, body_point
+
 f64 = wp.float64
 
 
@@ -253,7 +255,7 @@ def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, t
     """``x0 + t* v- + (h - t*) v+``: the end of a substep ``h`` [s] whose velocity switches from
     ``v-`` to ``v+`` at the time of impact ``ts`` [s] (the one time-of-impact integration: the
     particles' plane contacts here, and the collision response's particles and bodies,
-    :mod:`kernels.contact`)."""
+    :mod:`kernels.pose`)."""
     return x0 + ts * v_minus + (h - ts) * v_plus
 
 
@@ -421,3 +423,156 @@ def outside_bounds_kernel(
         flag[0] = 1
     elif wp.length(x - center) > radius:
         flag[0] = 1
+
+
+@wp.func
+def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
+    """``q`` turned by the world angular velocity ``omega`` [rad/s] for ``duration`` [s]: the
+    exact rotation (axis-angle), renormalised; smooth at ``omega = 0`` (series of sin(x/2)/x)."""
+    th2 = wp.dot(omega, omega) * duration * duration
+    s = wp.float64(0.5) - th2 / wp.float64(48.0)
+    c = wp.float64(1.0) - th2 / wp.float64(8.0) + th2 * th2 / wp.float64(384.0)
+    if th2 > wp.float64(1.0e-8):
+        th = wp.sqrt(th2)
+        s = wp.sin(wp.float64(0.5) * th) / th
+        c = wp.cos(wp.float64(0.5) * th)
+    a = omega * (duration * s)
+    return wp.normalize(wp.quatd(a[0], a[1], a[2], c) * q)
+
+
+@wp.func
+def time_of_impact_pose(X: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord, ts: wp.float64,
+                        h: wp.float64):
+    """The same for a body pose: the centre of mass as a particle, the orientation turned by
+    ``w-`` for ``t*`` and by ``w+`` for ``h - t*`` (twists angular, linear)."""
+    p = time_of_impact_position(wp.transform_get_translation(X), wp.spatial_bottom(v_minus), wp.spatial_bottom(v_plus),
+                                ts, h)
+    r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(v_minus), ts), wp.spatial_top(v_plus), h - ts)
+    return wp.transformd(p, r)
+
+
+@wp.kernel
+def time_of_impact_kernel(
+    particle_count: int,
+    x0: wp.array(dtype=wp.vec3d),
+    x_pred: wp.array(dtype=wp.vec3d),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_v_moving: wp.array(dtype=wp.vec3d),
+    particle_contact: wp.array(dtype=wp.int32),
+    q0: wp.array(dtype=wp.transformd),
+    q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_v_moving: wp.array(dtype=wp.spatial_vectord),
+    body_contact: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    x1: wp.array(dtype=wp.vec3d),
+    q1: wp.array(dtype=wp.transformd),
+):
+    """Time-of-impact integration of particle ``tid`` (first ``particle_count`` threads;
+    :func:`time_of_impact_position`) and of body ``tid - particle_count``
+    (:func:`time_of_impact_pose`) with the ``t*`` of its earliest contact row (-1: no contact,
+    the prediction stays; -2: impact zone, its rigid motion from ``t* = 0``), plus the push:
+    the moving velocities' excess over ``v+`` (``v_moving - v+``, the separation restored at
+    the position level) as a displacement over the whole substep ``h``, whatever ``t*`` is (a
+    contact found at the end of the substep still ends separated: ending it touching would
+    leave the next substep no side to push it to)."""
+    i = wp.tid()
+    if i < particle_count:
+        k = particle_contact[i]
+        if k == -1:
+            x1[i] = x_pred[i]
+        elif k == -2:
+            x1[i] = x0[i] + h * particle_v_moving[i]
+        else:
+            x1[i] = time_of_impact_position(x0[i], particle_v_minus[i], particle_v_plus[i], toi[k], h) + h * (
+                particle_v_moving[i] - particle_v_plus[i])
+        return
+    b = i - particle_count
+    kb = body_contact[b]
+    if kb == -1:
+        q1[b] = q_pred[b]
+        return
+    ts = wp.float64(0.0)
+    if kb >= 0:
+        ts = toi[kb]
+    pose = time_of_impact_pose(q0[b], body_v_minus[b], body_v_plus[b], ts, h)
+    push = body_v_moving[b] - body_v_plus[b]
+    q1[b] = wp.transformd(wp.transform_get_translation(pose) + h * wp.spatial_bottom(push),
+                          quat_turn(wp.transform_get_rotation(pose), wp.spatial_top(push), h))
+
+
+@wp.func
+def planned_position(x0: wp.vec3d, x_pred: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64,
+                     h: wp.float64) -> wp.vec3d:
+    """The Gauss-Seidel response's plan (not taped) of one particle: :func:`time_of_impact_position`
+    at its earliest contact time ``ts`` [s] (inf: none, the prediction ``x_pred`` stays; 0 for
+    an impact zone's)."""
+    if wp.isinf(ts):
+        return x_pred
+    return time_of_impact_position(x0, v_minus, v_plus, ts, h)
+
+
+@wp.func
+def planned_pose(q0: wp.transformd, q_pred: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord,
+                 ts: wp.float64, h: wp.float64) -> wp.transformd:
+    """The same for a body's pose (:func:`time_of_impact_pose`)."""
+    if wp.isinf(ts):
+        return q_pred
+    return time_of_impact_pose(q0, v_minus, v_plus, ts, h)
+
+
+@wp.kernel
+def planned_substep_kernel(
+    particle_q0: wp.array(dtype=wp.vec3d),
+    particle_q_pred: wp.array(dtype=wp.vec3d),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_time: wp.array(dtype=wp.float64),
+    body_q0: wp.array(dtype=wp.transformd),
+    body_q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    particle_count: int,
+    body_count: int,
+    particle_q1: wp.array(dtype=wp.vec3d),
+    body_q1: wp.array(dtype=wp.transformd),
+    x1: wp.array(dtype=wp.vec3d),
+):
+    """The Gauss-Seidel response's plan in one launch: the particles' ends
+    (:func:`planned_position`) in the first ``P`` threads, the bodies' (:func:`planned_pose`)
+    in the next ``B``, then the vertices posed at those ends (:func:`pose_vertices_kernel`), each
+    vertex thread working out its owner's end itself (no thread waits for another's).
+    Launched over ``P + B + vertices`` threads (``P``, ``B``: ``particle_count``,
+    ``body_count``), or over ``P + B`` for the ends alone (the caller then poses the vertices
+    from them, :func:`pose_vertices_kernel`: bodies with many vertices would otherwise
+    integrate their pose once per vertex)."""
+    i = wp.tid()
+    P = particle_count
+    B = body_count
+    if i < P:
+        particle_q1[i] = planned_position(particle_q0[i], particle_q_pred[i], particle_v_minus[i], particle_v_plus[i],
+                                          particle_time[i], h)
+        return
+    if i < P + B:
+        b = i - P
+        body_q1[b] = planned_pose(body_q0[b], body_q_pred[b], body_v_minus[b], body_v_plus[b], body_time[b], h)
+        return
+    v = i - P - B
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        x1[v] = planned_position(particle_q0[o], particle_q_pred[o], particle_v_minus[o], particle_v_plus[o],
+                                 particle_time[o], h)
+    elif kind == VERTEX_BODY:
+        x1[v] = body_point(planned_pose(body_q0[o], body_q_pred[o], body_v_minus[o], body_v_plus[o], body_time[o], h),
+                           local[v])
+    else:
+        x1[v] = local[v]

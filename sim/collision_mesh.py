@@ -9,9 +9,9 @@ One numbering of every vertex that can touch something, shared by the collision 
 * ``[P + S, P + S + G)``: the static meshes' vertices (world frame in ``local``).
 
 Each vertex has a type (:data:`VERTEX_PARTICLE`, :data:`VERTEX_BODY`, :data:`VERTEX_STATIC`, the
-constants of :mod:`kernels.contact`) and an owner (particle index, body index, or 0), and
+constants of :mod:`kernels.pose`) and an owner (particle index, body index, or 0), and
 :meth:`CollisionMesh.positions` / :meth:`CollisionMesh.pose` put them in the world for a state,
-on the host or with the Warp kernel :func:`kernels.contact.pose_vertices_kernel` on the model's
+on the host or with the Warp kernel :func:`kernels.pose.pose_vertices_kernel` on the model's
 device.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import mesh_edges
-from kernels.contact import pose_vertices_kernel
+from kernels.pose import pose_vertices_kernel
 from core.rotation import quat_to_matrix
 
 VERTEX_PARTICLE, VERTEX_BODY, VERTEX_STATIC = 0, 1, 2
@@ -109,7 +109,7 @@ class CollisionMesh:
             normals point sideways.
         flat_edges: (E - E', 2) int64, the other rows of ``edges``: edges inside a flat region
             of a rigid or static surface (vertex-face contacts whose closest point lies on one
-            take the face's normal, :func:`kernels.contact.contact_geometry_kernel`).
+            take the face's normal, :func:`kernels.contact_geometry.contact_geometry_kernel`).
         flat_opposites: (E - E', 2) int64, the third vertices of the two faces of each flat edge
             (:func:`flat_edges`).
         vertex_type: (V,) int64, ``VERTEX_*``.
@@ -221,7 +221,7 @@ class CollisionMesh:
     def pose(self, particle_q: wp.array, body_q: wp.array, x: wp.array, lever: wp.array) -> None:
         """World positions ``x`` (V,) and lever arms from the owning body's centre of mass
         ``lever`` (V,) (zero for particles and static vertices), vec3d arrays on the model's
-        device, by :func:`kernels.contact.pose_vertices_kernel` (differentiable under a tape)."""
+        device, by :func:`kernels.pose.pose_vertices_kernel` (differentiable under a tape)."""
         if not self.vertex_count:
             return
         if not hasattr(self, "_type_w"):

@@ -94,7 +94,7 @@ class Contacts(_Rows):
 class Hits(_Rows):
     """One detection pass's hits in canonical order (:mod:`kernels.contact_set`), with their
     geometry (``toi`` [s], ``weights``, ``normals``, ``targets``: the replay's definition,
-    :func:`kernels.contact.contact_geometry_kernel`) and decisions (``row``: the pair's row in
+    :func:`kernels.contact_geometry.contact_geometry_kernel`) and decisions (``row``: the pair's row in
     the contact set or -1; ``approaching``: 0 / 1; ``source_row``: the set's row the hit
     went to). ``keys`` / ``order`` hold the sort (twice the capacity: Warp's radix sort needs
     the room)."""

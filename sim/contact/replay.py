@@ -38,7 +38,49 @@ from core.buffers import Arena, RecordedLaunches, upload
 from core.tape import active_tape, any_tape, paused_tape
 from core.warp_adapter import is_frozen, mark_frozen
 from sim.contact.contacts import ContactLimitExceeded
-from kernels import contact as K
+from kernels.contact_geometry import (
+    contact_geometry_kernel,
+    contact_sides_kernel,
+    merge_contacts_kernel,
+)
+from kernels.decide import (
+    outside_cone_kernel,
+    push_active_kernel,
+    push_overshoot_kernel,
+    slip_reversed_kernel,
+    slip_update_kernel,
+    tangent_weights_kernel,
+)
+from kernels.dense import lu_factor_kernel, lu_solve_kernel, solve_adjoint_kernel
+from kernels.friction import (
+    friction_impulses_kernel,
+    sliding_delassus_kernel,
+    sliding_friction_half_kernel,
+    sliding_impulses_kernel,
+    slip_directions_from_impulses_kernel,
+    slip_directions_kernel,
+    sticking_delassus_kernel,
+    sticking_impulses_kernel,
+    sticking_rhs_kernel,
+)
+from kernels.integrate import time_of_impact_kernel
+from kernels.pose import pose_positions_kernel, pose_start_kernel
+from kernels.response import (
+    add_vectors_kernel,
+    contact_rhs_kernel,
+    contact_velocities_kernel,
+    delassus_kernel,
+    normal_part_kernel,
+    push_rhs_kernel,
+)
+from kernels.zones import (
+    zone_body_velocity_kernel,
+    zone_moments_kernel,
+    zone_particle_velocity_kernel,
+    zone_rigid_motion_kernel,
+    zone_select_kernel,
+    zone_sums_kernel,
+)
 from kernels.contact_set import active_unknowns_kernel
 
 REGULARIZATION = 1e-8
@@ -217,14 +259,14 @@ class ContactReplay:
     def pose_start(self, particle_q, body_q):
         """World positions and lever arms of all collidable vertices (+ the dummy vertex) and the
         bodies' world inverse inertia tensors (a dummy row when there is no body), in one launch
-        (:func:`kernels.contact.pose_start_kernel`)."""
+        (:func:`kernels.pose.pose_start_kernel`)."""
         n = self.n_vertices + 1
         bodies = body_q.shape[0] if body_q is not None else 0
         x = self._zeros(n, wp.vec3d)
         lever = self._zeros(n, wp.vec3d)
         inv_inertia = self._zeros(max(bodies, 1), wp.mat33d)
         self._launch(
-            K.pose_start_kernel, dim=max(n, bodies),
+            pose_start_kernel, dim=max(n, bodies),
             inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local, self._or(self.body_inv_inertia_body, self._no_inertia), n, bodies],
             outputs=[x, lever, inv_inertia], device=self.device,
@@ -236,7 +278,7 @@ class ContactReplay:
         n = self.n_vertices + 1
         x = self._zeros(n, wp.vec3d)
         self._launch(
-            K.pose_positions_kernel, dim=n,
+            pose_positions_kernel, dim=n,
             inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local],
             outputs=[x], device=self.device,
@@ -265,7 +307,7 @@ class ContactReplay:
         push = self._zeros(c, wp.float64)
         frozen = self.frozen
         self._launch(
-            K.contact_geometry_kernel, dim=c,
+            contact_geometry_kernel, dim=c,
             inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
                     frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
                     frozen(rows["plane"], c), self.planes,
@@ -292,7 +334,7 @@ class ContactReplay:
             old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d),
                    self._zeros(1, wp.float64))
         self._launch(
-            K.merge_contacts_kernel, dim=c,
+            merge_contacts_kernel, dim=c,
             inputs=[*old[:4], *new[:4], old[4], new[4], new_index, keep_old_toi, keep_old_target, old_count],
             outputs=list(out), device=self.device,
         )
@@ -312,11 +354,11 @@ class ContactReplay:
             lever, inv_inertia_w: start-pose lever arms and world inverse inertia tensors.
             vm_p, vm_b: the velocities before any impulse (``v-``).
             share: device (C,) friction share factors (see
-                :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
+                :func:`kernels.friction.friction_impulses_kernel`); None for no friction.
             start: (particle_qd, body_qd, resting speed [m/s]): the velocities at the substep's
                 start and the approach speed below which a contact at ``t* = 0`` rests (its
                 sliding friction is a force over the substep,
-                :func:`kernels.contact.sliding_friction_half_kernel`); None: every friction
+                :func:`kernels.friction.sliding_friction_half_kernel`); None: every friction
                 impulse counts as an impulse.
 
         Returns:
@@ -324,9 +366,9 @@ class ContactReplay:
             the positions): device arrays; the normal impulses are the normal parts of the
             accepted solve's (the sticking, sliding or split one, or the last normal pass after
             the friction pass); the last pair adds the push, the separation restored at the
-            position level (:func:`kernels.contact.push_rhs_kernel`), and for a sliding or
+            position level (:func:`kernels.response.push_rhs_kernel`), and for a sliding or
             split solve half the velocity change of its sliding friction on resting contact
-            (linear, :func:`kernels.contact.sliding_friction_half_kernel`), which makes a slide
+            (linear, :func:`kernels.friction.sliding_friction_half_kernel`), which makes a slide
             to rest second order in the substep.
         """
         # without a tape, its dense matrices are scratch: the next solve of the call reuses them
@@ -349,7 +391,7 @@ class ContactReplay:
         kinds_w = self.frozen(kinds, c)
         sides = (self.take(c, wp.vec2i, grad=False), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
                  self._zeros(c, wp.vec3d))
-        self._launch(K.contact_sides_kernel, dim=c,
+        self._launch(contact_sides_kernel, dim=c,
                   inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
                   outputs=list(sides), device=self.device)
         # the active contacts as unknowns, in row order (a decision: off the tape)
@@ -371,7 +413,7 @@ class ContactReplay:
             if start is None:
                 return vp, vb, normal, pushed(vp, vb)
             half = self._zeros(c, wp.vec3d)
-            self._launch(K.sliding_friction_half_kernel, dim=c,
+            self._launch(sliding_friction_half_kernel, dim=c,
                          inputs=[total, normals, slip, contacts[0], pairs_w, weights, self.vertex_type,
                                  self.vertex_owner, lever, *sides, *masses, self._or(start[0], self.empty_vec),
                                  self._or(start[1], self.empty_twist), wp.float64(start[2])],
@@ -383,7 +425,7 @@ class ContactReplay:
             return vm_p, vm_b, self._zeros(c, wp.vec3d), pushed(vm_p, vm_b)
         self.largest_system = max(self.largest_system, n_u)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
-        self._launch(K.delassus_kernel, dim=(n_u, n_u),
+        self._launch(delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                           wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
@@ -392,7 +434,7 @@ class ContactReplay:
         def normal_pass(vp, vb):
             # normal impulses that bring every active contact's normal velocity to its target
             rhs = self._zeros(n_u, wp.float64)
-            self._launch(K.contact_rhs_kernel, dim=n_u,
+            self._launch(contact_rhs_kernel, dim=n_u,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
@@ -435,7 +477,7 @@ class ContactReplay:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
             friction = self._zeros(c, wp.vec3d)
-            self._launch(K.friction_impulses_kernel, dim=c,
+            self._launch(friction_impulses_kernel, dim=c,
                       inputs=[normal, share, pairs_w, weights, normals, self.vertex_type,
                               self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
                               self._or(vb, self.empty_twist), wp.float64(self.friction)],
@@ -447,15 +489,15 @@ class ContactReplay:
     def _pushed(self, active, c: int, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb):
         """The velocities that move the positions: ``vp``, ``vb`` (after the impulses) plus the
         push, the separation restored at the position level. Its unknowns are the active
-        contacts and those still short of their push (:func:`kernels.contact.push_active_kernel`,
+        contacts and those still short of their push (:func:`kernels.decide.push_active_kernel`,
         a decision); their normal impulses bring each one's normal velocity up to its push
-        (:func:`kernels.contact.push_rhs_kernel`); they never reach the velocities."""
+        (:func:`kernels.response.push_rhs_kernel`); they never reach the velocities."""
         flags = self.take(c, wp.int32, zero=False, grad=False)
         uc = self.take(c, wp.int32, zero=False, grad=False)
         cu = self.take(c, wp.int32, zero=False, grad=False)
         count = self.take(1, wp.int32, zero=False, grad=False)
         with paused_tape():
-            self._launch(K.push_active_kernel, dim=c,
+            self._launch(push_active_kernel, dim=c,
                       inputs=[active, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
                               self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                       outputs=[flags], device=self.device)
@@ -464,20 +506,20 @@ class ContactReplay:
         if not n:
             return vp, vb
         rhs = self._zeros(n, wp.float64)
-        self._launch(K.push_rhs_kernel, dim=n,
+        self._launch(push_rhs_kernel, dim=n,
                   inputs=[uc, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
                           self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
                   outputs=[rhs], device=self.device)
         for regularization in (REGULARIZATION, PUSH_REGULARIZATION):
             matrix = self._zeros(0, wp.float64, shape=(n, n))
-            self._launch(K.delassus_kernel, dim=(n, n),
+            self._launch(delassus_kernel, dim=(n, n),
                       inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
                               wp.float64(regularization)],
                       outputs=[matrix], device=self.device)
             solution = self._dense_solve(matrix, rhs)
             overshoot = self.take(1, wp.int32, grad=False)
             with paused_tape():
-                self._launch(K.push_overshoot_kernel, dim=n, inputs=[matrix, rhs, solution, wp.float64(PUSH_OVERSHOOT)],
+                self._launch(push_overshoot_kernel, dim=n, inputs=[matrix, rhs, solution, wp.float64(PUSH_OVERSHOOT)],
                              outputs=[overshoot], device=self.device)
             if not int(overshoot.numpy()[0]):
                 break
@@ -488,28 +530,28 @@ class ContactReplay:
         """Every active contact sliding: one unknown each, the normal impulse ``j_n``, whose
         impulse ``j_n (n - mu s)`` carries Coulomb friction against the slip direction ``s`` of
         the velocities after the normal pass (``vp_n``, ``vb_n``;
-        :func:`kernels.contact.slip_directions_kernel`), solved exactly for the normal targets
+        :func:`kernels.friction.slip_directions_kernel`), solved exactly for the normal targets
         (and refined, as the normal passes). Returns ``(particle_qd, body_qd, normal
         impulses)`` as :meth:`solve` followed by the whole impulses and the slip directions, or
         None when a contact pulls or stops slipping (its slip turns back: it sticks)."""
         _, targets, _, normals, _ = contacts
         directions = self._zeros(c, wp.vec3d)
-        self._launch(K.slip_directions_kernel, dim=c,
+        self._launch(slip_directions_kernel, dim=c,
                   inputs=[pairs_w, weights, normals, self.vertex_type, self.vertex_owner, lever,
                           self._or(vp_n, self.empty_vec), self._or(vb_n, self.empty_twist)],
                   outputs=[directions], device=self.device)
         matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
         mu = wp.float64(self.friction)
-        self._launch(K.sliding_delassus_kernel, dim=(n_u, n_u),
+        self._launch(sliding_delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
                           *masses, wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
-        vp, vb, total = self._refined_impulses(matrix, n_u, K.contact_rhs_kernel, K.sliding_impulses_kernel,
+        vp, vb, total = self._refined_impulses(matrix, n_u, contact_rhs_kernel, sliding_impulses_kernel,
                                                (directions, mu), uc, cu, c, pairs_w, weights, normals, targets, sides,
                                                masses, lever, vm_p, vm_b)
         rejected = self.take(1, wp.int32, grad=False)
         with paused_tape():
-            self._launch(K.slip_reversed_kernel, dim=c,
+            self._launch(slip_reversed_kernel, dim=c,
                       inputs=[total, normals, directions, cu, pairs_w, weights, self.vertex_type, self.vertex_owner,
                               lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist),
                               wp.float64(SLIP_REVERSAL)],
@@ -517,7 +559,7 @@ class ContactReplay:
         if int(rejected.numpy()[0]):
             return None
         normal = self._zeros(c, wp.vec3d)
-        self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
+        self._launch(normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
         return vp, vb, normal, total, directions
 
     def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
@@ -546,12 +588,12 @@ class ContactReplay:
     def _sum(self, a, b, count: int):
         """``a + b`` of two (count,) vec3 arrays into a fresh one."""
         out = self._zeros(count, wp.vec3d)
-        self._launch(K.add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
+        self._launch(add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
         return out
 
     def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, solved=None):
         """Velocities after the contact ``impulses`` (C,) (fresh arrays;
-        :func:`kernels.contact.contact_velocities_kernel`), or with ``solved`` = (contact
+        :func:`kernels.response.contact_velocities_kernel`), or with ``solved`` = (contact
         unknowns, solution, normals, normal impulses out) after the solved normal impulses, which
         are written to the last array."""
         p_count = vp.shape[0] if vp is not None else 0
@@ -561,7 +603,7 @@ class ContactReplay:
         out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
         unknowns, solution, normals, normal = solved if solved is not None else \
             (self._no_int, self._no_float, self.empty_vec, self._unused_impulses)
-        self._launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
+        self._launch(contact_velocities_kernel, dim=c + p_count + b_count,
                   inputs=[c, p_count, int(solved is not None), unknowns, solution, normals,
                           impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
                           self.vertex_owner, *sides, *masses, self._or(vp, self.empty_vec),
@@ -570,14 +612,14 @@ class ContactReplay:
         return (out_p if p_count else vp), (out_b if b_count else vb)
 
     def _factor(self, matrix):
-        """The LU factors of a square system ``matrix`` (:func:`kernels.contact.lu_factor_kernel`;
+        """The LU factors of a square system ``matrix`` (:func:`kernels.dense.lu_factor_kernel`;
         a solve's refinement pass reuses them), with a slot for the factors of its transpose,
         which the backward passes of the solves that share them make once."""
         n = matrix.shape[0]
         work = self.take((n, n), wp.float64, zero=False, grad=False)
         pivots = self.take(n, wp.int32, zero=False, grad=False)
         with paused_tape():  # the solve's implicit adjoint stands for it (:meth:`_dense_solve`)
-            self._launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
+            self._launch(lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
         return work, pivots, []
 
     def _dense_solve(self, matrix, rhs, factors=None):
@@ -592,7 +634,7 @@ class ContactReplay:
         work, pivots, transposed = factors if factors is not None else self._factor(matrix)
         solution = self._zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
-            self._launch(K.lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
+            self._launch(lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
         tape = active_tape()
         if tape is not None:
             device = self.device
@@ -601,11 +643,11 @@ class ContactReplay:
                 if not transposed:  # the first of the solves sharing these factors to run backwards
                     transposed.extend((wp.empty((n, n), dtype=wp.float64, device=device),
                                        wp.empty(n, dtype=wp.int32, device=device)))
-                    wp.launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=transposed, device=device)
+                    wp.launch(lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=transposed, device=device)
                 adjoint = wp.zeros(n, dtype=wp.float64, device=device)
-                wp.launch(K.lu_solve_kernel, dim=1, inputs=[*transposed, solution.grad], outputs=[adjoint],
+                wp.launch(lu_solve_kernel, dim=1, inputs=[*transposed, solution.grad], outputs=[adjoint],
                           device=device)
-                wp.launch(K.solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
+                wp.launch(solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
                           outputs=[matrix.grad, rhs.grad], device=device)
 
             tape.record_func(backward, [matrix, rhs, solution])
@@ -619,7 +661,7 @@ class ContactReplay:
         b_count = moving_b.shape[0] if moving_b is not None else 0
         out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
         out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
-        self._launch(K.zone_select_kernel, dim=p_count + b_count,
+        self._launch(zone_select_kernel, dim=p_count + b_count,
                   inputs=[p_count, self.frozen(zone_p, p_count), self.frozen(zone_b, b_count),
                           self._or(moving_p, self.empty_vec), self._or(moving_b, self.empty_twist),
                           self._or(zone_vp, self.empty_vec), self._or(zone_vb, self.empty_twist)],
@@ -636,9 +678,9 @@ class ContactReplay:
         start positions ``particle_q`` / ``body_q``, the velocities ``vp`` / ``vb``, the inverse
         masses and the body masses and inertias: each zone's total mass, linear momentum and, about
         its centre of mass, angular momentum and inertia tensor are summed
-        (:func:`kernels.contact.zone_sums_kernel`, :func:`kernels.contact.zone_moments_kernel`),
+        (:func:`kernels.zones.zone_sums_kernel`, :func:`kernels.zones.zone_moments_kernel`),
         ``linear = momentum / mass`` and ``omega = pinv(inertia) angular momentum``
-        (:func:`kernels.contact.zone_rigid_motion_kernel`, the pseudo-inverse for zones of
+        (:func:`kernels.zones.zone_rigid_motion_kernel`, the pseudo-inverse for zones of
         collinear particles), and each member moves with ``linear + omega x r`` (bodies: that at
         the centre of mass, and ``omega``). Momentum and angular momentum of each zone are kept.
         """
@@ -663,27 +705,27 @@ class ContactReplay:
             mass, first, momentum = self._zeros(nz, wp.float64), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
             angular, inertia = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.mat33d)
             members = [p_count, pz, bz, xp, vp_in, self.particle_inv_mass, bq, vb_in, b_mass]
-            self._launch(K.zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
+            self._launch(zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
                       device=self.device)
-            self._launch(K.zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
+            self._launch(zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
                       outputs=[angular, inertia], device=self.device)
-            self._launch(K.zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
+            self._launch(zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
                       outputs=[centre, linear, omega], device=self.device)
         out_p, out_b = vp, vb
         if in_p:
             out_p = self._zeros(p_count, wp.vec3d)
-            self._launch(K.zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
+            self._launch(zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
                       outputs=[out_p], device=self.device)
         if in_b:
             out_b = self._zeros(b_count, wp.spatial_vectord)
-            self._launch(K.zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
+            self._launch(zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
                       outputs=[out_b], device=self.device)
         return out_p, out_b
 
     def integrate(self, x0p, x_pred, vm_p, vp, moving_p, bq0, bq_pred, vm_b, vb, moving_b, particle_owner, body_owner,
                   toi, h):
         """Time-of-impact integration of particles and bodies in one launch
-        (:func:`kernels.contact.time_of_impact_kernel`; owner contact rows: device int32 arrays,
+        (:func:`kernels.integrate.time_of_impact_kernel`; owner contact rows: device int32 arrays,
         fresh while a tape records; -1: the prediction stays; -2: an impact zone's rigid motion
         over the whole substep): ``v-`` (``vm_*``) until the owner's ``t*``, ``v+`` (``vp``,
         ``vb``) after it, and the push (``moving_* - v+``) as a displacement over the whole
@@ -694,7 +736,7 @@ class ContactReplay:
         xp = self._zeros(p_count, wp.vec3d) if p_count else None
         bq = self._zeros(b_count, wp.transformd) if b_count else None
         if p_count + b_count:
-            self._launch(K.time_of_impact_kernel, dim=p_count + b_count,
+            self._launch(time_of_impact_kernel, dim=p_count + b_count,
                       inputs=[p_count, self._or(x0p, self.empty_vec), self._or(x_pred, self.empty_vec),
                               self._or(vm_p, self.empty_vec), self._or(vp, self.empty_vec),
                               self._or(moving_p, self.empty_vec), particle_owner,
@@ -707,19 +749,19 @@ class ContactReplay:
 
 class _FrictionSplit:
     """The frictional solves of one active set with Coulomb's limit (:meth:`ContactReplay.solve`):
-    three unknowns per active contact (:func:`kernels.contact.contact_axis`) in one system
-    (:func:`kernels.contact.sticking_delassus_kernel`), where a sticking contact's relative
+    three unknowns per active contact (:func:`kernels.friction.contact_axis`) in one system
+    (:func:`kernels.friction.sticking_delassus_kernel`), where a sticking contact's relative
     velocity is brought to its normal target and zero slip, and a sliding one keeps its normal
     target with the friction ``j_t = -mu j_n s`` against its slip direction ``s``.
 
     :meth:`sticking` tries every contact sticking; :meth:`mixed` continues from its last trial:
     contacts whose impulse leaves the friction cone slide, their friction ``mu j_n`` along the
     friction they asked for, and sliding contacts whose slip turns back stick again
-    (:func:`kernels.contact.slip_update_kernel`), until the split holds, returns to one it
+    (:func:`kernels.decide.slip_update_kernel`), until the split holds, returns to one it
     tried, or :data:`FRICTION_SPLIT_ITERATIONS` solves are done.
 
     Redundant contacts leave the split of the friction among them free: it is chosen in
-    proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
+    proportion to normal loads (:func:`kernels.decide.tangent_weights_kernel`): the normal
     pass's impulses, and after a trial that leaves a contact outside its cone, the last trial's
     own (a decision, which changes the split, not the motion; under a tape the rejected trials'
     launches stay recorded). Which contacts slide is a decision too; their directions come from
@@ -749,14 +791,14 @@ class _FrictionSplit:
         m = 3 * self.n_u
         tangent_weight = r.take(c, wp.float64, zero=False, grad=False)
         with paused_tape():
-            r._launch(K.tangent_weights_kernel, dim=1, inputs=[c, self.cu, loads, normals], outputs=[tangent_weight],
+            r._launch(tangent_weights_kernel, dim=1, inputs=[c, self.cu, loads, normals], outputs=[tangent_weight],
                       device=r.device)
         matrix = r._zeros(0, wp.float64, shape=(m, m))
-        r._launch(K.sticking_delassus_kernel, dim=(m, m),
+        r._launch(sticking_delassus_kernel, dim=(m, m),
                   inputs=[self.uc, self.pairs_w, self.weights, normals, r.vertex_type, r.vertex_owner, *self.sides,
                           *self.masses, wp.float64(REGULARIZATION), tangent_weight, slip, self.mu],
                   outputs=[matrix], device=r.device)
-        vp, vb, total = r._refined_impulses(matrix, m, K.sticking_rhs_kernel, K.sticking_impulses_kernel, (), self.uc,
+        vp, vb, total = r._refined_impulses(matrix, m, sticking_rhs_kernel, sticking_impulses_kernel, (), self.uc,
                                             self.cu, c, self.pairs_w, self.weights, normals, targets, self.sides,
                                             self.masses, self.lever, *self.vm, rhs_args=(slip,))
         self.last = (vp, vb, total, slip)
@@ -770,7 +812,7 @@ class _FrictionSplit:
         counts = r.take(1, wp.int32, grad=False)
         codes = r.take(self.c, wp.int32, zero=False, grad=False)
         with paused_tape():
-            r._launch(K.slip_update_kernel, dim=self.c,
+            r._launch(slip_update_kernel, dim=self.c,
                       inputs=[total, normals, self.cu, self.pairs_w, self.weights, r.vertex_type, r.vertex_owner,
                               self.lever, r._or(vp, r.empty_vec), r._or(vb, r.empty_twist), self.mu,
                               wp.float64(SLIP_REVERSAL), slip],
@@ -779,14 +821,14 @@ class _FrictionSplit:
         if not changes:
             return slip, 0
         slip_next = r.take(self.c, wp.vec3d, zero=False)
-        r._launch(K.slip_directions_from_impulses_kernel, dim=self.c, inputs=[codes, total, normals, slip],
+        r._launch(slip_directions_from_impulses_kernel, dim=self.c, inputs=[codes, total, normals, slip],
                   outputs=[slip_next], device=r.device)
         return slip_next, changes
 
     def _result(self):
         r, (vp, vb, total, _) = self.r, self.last
         normal_part = r._zeros(self.c, wp.vec3d)
-        r._launch(K.normal_part_kernel, dim=self.c, inputs=[total, self.contacts[3]], outputs=[normal_part],
+        r._launch(normal_part_kernel, dim=self.c, inputs=[total, self.contacts[3]], outputs=[normal_part],
                   device=r.device)
         return vp, vb, normal_part
 
@@ -800,7 +842,7 @@ class _FrictionSplit:
             _, _, total, _ = self._trial(normal if loads is not None else self.last[2], slip)
             count = r.take(1, wp.int32, grad=False)
             with paused_tape():
-                r._launch(K.outside_cone_kernel, dim=self.c, inputs=[total, self.contacts[3], self.cu, self.mu],
+                r._launch(outside_cone_kernel, dim=self.c, inputs=[total, self.contacts[3], self.cu, self.mu],
                           outputs=[count], device=r.device)
             self.outside = int(count.numpy()[0])
             if not self.outside:

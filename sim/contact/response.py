@@ -28,7 +28,7 @@ model's components decide which groups exist and which may touch (cloth with its
    start offset, the target ``-e v_n`` (``v_n`` the velocity at ``t*``: the start velocity plus
    the forces' change up to ``t*``) and the separation ``SEPARATION_RATE delta`` restored as in 1.
 3. **Impulses** for the whole contact set: projected Gauss-Seidel sweeps in a Warp kernel
-   (:func:`kernels.contact.solve_contacts_kernel`, sequential, deterministic), accumulated normal
+   (:func:`kernels.decide.solve_contacts_kernel`, sequential, deterministic), accumulated normal
    impulses clamped to ``>= 0`` and Coulomb friction clamped to the cone ``|j_t| <= mu j_n``. Cloth impulses split by the barycentric / segment weights and the
    inverse masses; rigid ones change the linear and the angular velocity (world inverse inertia).
 4. **Time-of-impact integration**: every particle or body whose velocity changed moves with its
@@ -89,8 +89,10 @@ from sim.collision_mesh import CollisionMesh
 from sim.contact.replay import ContactReplay
 from core.tape import active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact import (contact_geometry_kernel, planned_substep_kernel, pose_positions_kernel,
-                             pose_substep_kernel, solve_contacts_kernel)
+from kernels.contact_geometry import contact_geometry_kernel
+from kernels.decide import solve_contacts_kernel
+from kernels.integrate import planned_substep_kernel
+from kernels.pose import pose_positions_kernel, pose_substep_kernel
 from kernels.contact_set import (active_set_update_kernel, add_contacts_kernel, approach_kernel,
                                  flags_differ_kernel, friction_share_count_kernel, friction_share_kernel,
                                  gather_hits_kernel, hit_keys_kernel, initial_active_kernel, match_contacts_kernel,
@@ -109,7 +111,7 @@ PROXIMITY_HYSTERESIS) delta`` apart, not just nearer than ``delta``: resting con
 substep at ``delta`` to rounding, and a load-bearing pair that rounding put a hair beyond it
 would otherwise leave the set for a substep, drop its load and kick the cloth (a draped cloth
 crept 2.6e-5 m/s). A pair beyond ``delta`` may approach until it reaches ``delta`` at the end of
-the substep (:func:`kernels.contact.contact_geometry_kernel`), so the band holds no pair that
+the substep (:func:`kernels.contact_geometry.contact_geometry_kernel`), so the band holds no pair that
 approaches slower than the separation speed before it touches ``delta``; one approaching faster
 bounces (restitution) up to ``1e-3 delta`` early."""
 
@@ -524,7 +526,7 @@ class ImpulseCollisionHandler:
     def _pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None) -> wp.array:
         """World positions (V + 1, 3) [m] of the collidable vertices and the dummy vertex at the
         origin for the device arrays ``particle_q`` (P,) and ``body_q`` (B,)
-        (:func:`kernels.contact.pose_positions_kernel`), in the handler's device buffer ``name``
+        (:func:`kernels.pose.pose_positions_kernel`), in the handler's device buffer ``name``
         (overwritten by the next pose into ``name``)."""
         n, R = self.n_vertices + 1, self._replay
         x = self._staging.empty("posed_" + name, n, wp.vec3d)  # not the substep pose's buffers
@@ -536,7 +538,7 @@ class ImpulseCollisionHandler:
     def _pose_substep(self, state_in: State, state_pred: State):
         """:meth:`_pose` of ``state_in`` and of ``state_pred`` and the bodies' world inverse
         inertia tensors at ``state_in`` (``R I^-1 R^T``), in one launch
-        (:func:`kernels.contact.pose_substep_kernel`).
+        (:func:`kernels.pose.pose_substep_kernel`).
 
         Returns:
             (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`_pose`'s), the
@@ -773,7 +775,7 @@ class ImpulseCollisionHandler:
 
     def _hit_geometry(self, x0_w, x1_w, lever_w, vm, vel, times, h: float) -> None:
         """Times [s], weights, normals and targets of :attr:`_hits` on the paths ``x0_w -> x1_w``
-        (:func:`kernels.contact.contact_geometry_kernel`, the replay's definition), with the
+        (:func:`kernels.contact_geometry.contact_geometry_kernel`, the replay's definition), with the
         velocities ``v-`` (``vm``) before each owner's contact time (``times``: particle and body
         device arrays; None: no contact yet) and ``vel`` after it (None: still ``v-``)."""
         H, R = self._hits, self._replay
@@ -829,7 +831,7 @@ class ImpulseCollisionHandler:
         band), with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
         direction, or the face's normal over a face, or for touching pairs as
         :data:`TOUCHING_RELATIVE` says; target and push as
-        :func:`kernels.contact.contact_geometry_kernel` says).
+        :func:`kernels.contact_geometry.contact_geometry_kernel` says).
 
         The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
         ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
@@ -903,7 +905,7 @@ class ImpulseCollisionHandler:
         return int(host(self._approach_counter)[0])
 
     def _solve(self, vel, lever: wp.array, inv_inertia_w: wp.array) -> None:
-        """Projected Gauss-Seidel on the contact set (:func:`kernels.contact.solve_contacts_kernel`):
+        """Projected Gauss-Seidel on the contact set (:func:`kernels.decide.solve_contacts_kernel`):
         updates the velocities ``vel`` (device buffers) and the set's accumulated impulses in
         place. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row): the vertices'
         lever arms and the bodies' world inverse inertia tensors at the start pose."""
@@ -930,7 +932,7 @@ class ImpulseCollisionHandler:
         particle / body (:func:`kernels.contact_set.owner_times_kernel`; 0 for the members of
         impact zones, ``zone_flags`` (P,), (B,) int32 device arrays or None) and the velocities
         after the impulses ``vel``: the replay's time-of-impact integration
-        (:func:`kernels.contact.time_of_impact_position`, ``time_of_impact_pose``), then the
+        (:func:`kernels.integrate.time_of_impact_position`, ``time_of_impact_pose``), then the
         vertices' positions (:meth:`_pose`).
 
         Returns:
