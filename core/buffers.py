@@ -44,6 +44,14 @@ def upload(dst: wp.array, src: np.ndarray) -> wp.array:
     return dst
 
 
+def rows(a, tail: tuple, dtype=np.float64) -> np.ndarray:
+    """``a`` (a Warp array, a tensor, array-like or None) as a numpy array of rows of shape
+    ``tail``: (n, *tail) of ``dtype``; None gives zero rows."""
+    if a is None:
+        return np.zeros((0, *tail), dtype=dtype)
+    return np.asarray(a.numpy() if hasattr(a, "numpy") else a, dtype=dtype).reshape(-1, *tail)
+
+
 def read_only(*arrays: np.ndarray) -> tuple:
     """``arrays``, made read-only (results shared between calls: writing one raises)."""
     for a in arrays:

@@ -363,7 +363,7 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
     return wp.vec3d(zero, inf, wp.float64(-1.0))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def ccd_kernel(
     kind: int,
     queries: wp.array(dtype=mat83d),
@@ -384,7 +384,7 @@ def query_coefficients(m: mat83d) -> wp.vec4d:
     return coplanarity_cubic(row(m, 0), row(m, 1), row(m, 2), row(m, 3), row(m, 4), row(m, 5), row(m, 6), row(m, 7))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def ccd_time_of_impact_kernel(
     queries: wp.array(dtype=mat83d),
     source: wp.array(dtype=wp.int32),
@@ -466,7 +466,7 @@ def pair_query(q: wp.vec4i, x0: wp.array(dtype=wp.vec3d), x1: wp.array(dtype=wp.
     return m
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def pair_ccd_kernel(
     vf_count: int,
     vf_pairs: wp.array(dtype=wp.vec2i),

@@ -34,7 +34,7 @@ def infinity() -> wp.float64:
     return wp.float64(1.0e308) * wp.float64(10.0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def hit_keys_kernel(
     mesh_count: int,
     mesh_kind: wp.array(dtype=wp.int32),
@@ -87,7 +87,7 @@ def _sift_down(keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32),
             root = end  # done
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
     """Heap sort of ``keys[0:count]`` (ascending) with their ``values``, launched with ``dim=1``:
     on the CPU, where every launch runs its threads one after another, it costs a few
@@ -111,7 +111,7 @@ def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.arra
         end = end - 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_hits_kernel(
     keys: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
@@ -184,7 +184,7 @@ def gather_hits_kernel(
             source[i] = TIME_DETECTED
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def plane_proximity_kernel(
     x: wp.array(dtype=wp.vec3d),
     vertex_ids: wp.array(dtype=wp.int32),
@@ -212,7 +212,7 @@ def plane_proximity_kernel(
             pairs[wp.atomic_add(counter, 0, 1)] = wp.vec2i(v, k)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def plane_crossing_kernel(
     x1: wp.array(dtype=wp.vec3d),
     vertex_ids: wp.array(dtype=wp.int32),
@@ -240,7 +240,7 @@ def plane_crossing_kernel(
             time[slot] = wp.clamp(d0 / (d0 - d1), wp.float64(0.0), wp.float64(1.0))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def match_contacts_kernel(
     contact_kind: wp.array(dtype=wp.int32),
     contact_pair: wp.array(dtype=wp.vec2i),
@@ -267,7 +267,7 @@ def match_contacts_kernel(
             row[lo] = wp.int32(c)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def approach_kernel(
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
@@ -387,7 +387,7 @@ def rigid_only(vertices: wp.vec4i, weights: wp.vec4d, vertex_type: wp.array(dtyp
     return rigid
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def add_contacts_kernel(
     hit_count: int,
     all_new: int,
@@ -502,7 +502,7 @@ def add_contacts_kernel(
     count[0] = wp.int32(n)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def owner_times_reset_kernel(
     particle_count: int,
     particle_zone: wp.array(dtype=wp.int32),
@@ -527,7 +527,7 @@ def owner_times_reset_kernel(
     body_time[b] = t
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def owner_times_kernel(
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -560,7 +560,7 @@ OWNER_TIMED = wp.constant(1 << 30)
 (rows below 2^30)."""
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def owner_rows_reset_kernel(particle_count: int, particle_key: wp.array(dtype=wp.int32),
                             body_key: wp.array(dtype=wp.int32)):
     """-1 (no contact) for each particle's (first ``particle_count`` threads) and body's key."""
@@ -571,7 +571,7 @@ def owner_rows_reset_kernel(particle_count: int, particle_key: wp.array(dtype=wp
         body_key[i - particle_count] = -1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def owner_rows_kernel(
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -607,7 +607,7 @@ def owner_rows_kernel(
                 wp.atomic_max(body_key, o, key)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def owner_rows_finish_kernel(
     particle_count: int,
     particle_key: wp.array(dtype=wp.int32),
@@ -648,7 +648,7 @@ def _mobile_row(q: wp.vec4i, w: wp.vec4d, mobile_vertex: wp.array(dtype=wp.int32
     return 0
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def initial_active_kernel(
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -669,7 +669,7 @@ def initial_active_kernel(
     active[c] = wp.int32(a)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def active_set_update_kernel(
     count: int,
     vertices: wp.array(dtype=wp.vec4i),
@@ -731,7 +731,7 @@ def active_set_update_kernel(
     changes[0] = wp.int32(n_changes)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def flags_differ_kernel(a: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.int32), counter: wp.array(dtype=wp.int32)):
     """Counts in ``counter[0]`` the entries where the flags ``a`` and ``b`` differ."""
     i = wp.tid()
@@ -739,7 +739,7 @@ def flags_differ_kernel(a: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.int32)
         wp.atomic_add(counter, 0, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def set_impulses_kernel(
     active: wp.array(dtype=wp.int32),
     normal: wp.array(dtype=wp.vec3d),
@@ -772,7 +772,7 @@ def _share_node(q: wp.vec4i, w: wp.vec4d, s: int, particle_count: int, vertex_ty
     return -1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def friction_share_count_kernel(
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -799,7 +799,7 @@ def friction_share_count_kernel(
                 wp.atomic_add(node_count, node, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def friction_share_kernel(
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
@@ -823,7 +823,7 @@ def friction_share_kernel(
     share[c] = wp.float64(1.0) / wp.float64(most)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def active_unknowns_kernel(
     count: int,
     active: wp.array(dtype=wp.int32),

@@ -14,7 +14,7 @@ from kernels.point_triangle import point_triangle_offset
 from kernels.response import relative_velocity
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def pair_proximity_kernel(
     vf_count: int,
     vf_pairs: wp.array(dtype=wp.vec2i),
@@ -150,7 +150,7 @@ def _apply_body_impulse(
     body_qd[body] = wp.spatial_vectord(w[0], w[1], w[2], v[0], v[1], v[2])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def solve_contacts_kernel(
     count: int,
     pairs: wp.array(dtype=wp.vec4i),

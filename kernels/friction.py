@@ -117,43 +117,6 @@ def slip_directions_kernel(
 
 
 @wp.kernel
-def sliding_delassus_kernel(
-    unknown_contact: wp.array(dtype=wp.int32),
-    pairs: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    normals: wp.array(dtype=wp.vec3d),
-    directions: wp.array(dtype=wp.vec3d),
-    friction: wp.float64,
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    side_body: wp.array(dtype=wp.vec2i),
-    side_weight: wp.array(dtype=wp.vec2d),
-    rho_a: wp.array(dtype=wp.vec3d),
-    rho_b: wp.array(dtype=wp.vec3d),
-    particle_inv_mass: wp.array(dtype=wp.float64),
-    body_inv_mass: wp.array(dtype=wp.float64),
-    body_inv_inertia: wp.array(dtype=wp.mat33d),
-    regularization: wp.float64,
-    matrix: wp.array2d(dtype=wp.float64),
-):
-    """Entry (r, u) of the sliding system: the normal relative velocity of active contact ``r``
-    per unit normal impulse at active contact ``u`` that carries its Coulomb friction along,
-    the impulse ``n - mu s`` (``s`` its slip direction): ``n_r . K_ru (n_u - mu s_u)``; the
-    diagonal scaled as in :func:`delassus_kernel`."""
-    r, u = wp.tid()
-    c = unknown_contact[r]
-    d = unknown_contact[u]
-    resp = contact_response(
-        c, d, normals[d] - friction * directions[d], pairs, weights, vertex_type, vertex_owner, side_body,
-        side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
-    )
-    value = wp.dot(normals[c], resp)
-    if r == u:
-        value = value * (wp.float64(1.0) + regularization)
-    matrix[r, u] = value
-
-
-@wp.kernel
 def sliding_impulses_kernel(
     contact_unknown: wp.array(dtype=wp.int32),
     solution: wp.array(dtype=wp.float64),

@@ -133,7 +133,7 @@ def changed(x_pred: wp.vec3d, v_pred: wp.vec3d, x_after: wp.vec3d, v_after: wp.v
     return moved or wp.length(v_after - v_pred) > tol * (wp.length(v_pred) + wp.length(v_after))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def collided_particles(
     x_pred: wp.array(dtype=wp.vec3d),
     v_pred: wp.array(dtype=wp.vec3d),
@@ -322,7 +322,7 @@ def negate_kernel(a: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     out[i] = -a[i]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def strain_growth(
     x_before: wp.array(dtype=wp.vec3d),
     x_after: wp.array(dtype=wp.vec3d),

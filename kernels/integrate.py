@@ -259,7 +259,7 @@ def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, t
     return x0 + ts * v_minus + (h - ts) * v_plus
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def find_plane_contacts(
     x0: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),

@@ -64,6 +64,8 @@ def delassus_kernel(
     pairs: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
+    directions: wp.array(dtype=wp.vec3d),
+    friction: wp.float64,
     vertex_type: wp.array(dtype=wp.int32),
     vertex_owner: wp.array(dtype=wp.int32),
     side_body: wp.array(dtype=wp.vec2i),
@@ -76,16 +78,18 @@ def delassus_kernel(
     regularization: wp.float64,
     matrix: wp.array2d(dtype=wp.float64),
 ):
-    """Entry (r, u) of the active set's normal system: the normal relative velocity of active
-    contact ``r`` per unit normal impulse at active contact ``u`` (``n_r . K_ru n_u``); the
-    diagonal is scaled by ``1 + regularization`` so that redundant contacts (a singular matrix)
-    still give a unique, bounded solution."""
+    """Entry (r, u) of the normal system of the active contacts: the normal relative velocity of
+    active contact ``r`` per unit normal impulse at active contact ``u``. With ``friction`` mu
+    and slip ``directions`` s, each normal impulse carries its contact's sliding friction along
+    (the impulse ``n - mu s``: the sliding system), else (``friction`` 0) it is the plain normal
+    system ``n_r . K_ru n_u``. The diagonal is scaled by ``1 + regularization`` so that redundant
+    contacts (a singular matrix) still give a unique, bounded solution."""
     r, u = wp.tid()
     c = unknown_contact[r]
     d = unknown_contact[u]
     resp = contact_response(
-        c, d, normals[d], pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
-        particle_inv_mass, body_inv_mass, body_inv_inertia,
+        c, d, normals[d] - friction * directions[d], pairs, weights, vertex_type, vertex_owner, side_body,
+        side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
     )
     value = wp.dot(normals[c], resp)
     if r == u:

@@ -23,17 +23,11 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import mesh_edges
-from kernels.pose import pose_vertices_kernel
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, pose_vertices_kernel
 from core.rotation import quat_to_matrix
+from core.buffers import rows
 
-VERTEX_PARTICLE, VERTEX_BODY, VERTEX_STATIC = 0, 1, 2
 
-
-def _np(a, tail: tuple, dtype=np.float64) -> np.ndarray:
-    if a is None:
-        return np.zeros((0, *tail), dtype=dtype)
-    arr = a.numpy() if hasattr(a, "numpy") else np.asarray(a)
-    return np.asarray(arr, dtype=dtype).reshape(-1, *tail)
 
 
 FLAT_EDGE_COSINE = 1.0 - 1e-12
@@ -140,12 +134,12 @@ class CollisionMesh:
         """The collidable surface of a finalised :class:`sim.model.Model` (arrays copied to the
         host once)."""
         P, B = int(model.particle_count), int(model.body_count)
-        tris = _np(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
-        shape_vertices = _np(model.shape_vertices, (3,))
-        shape_body = _np(model.shape_vertex_body, (), np.int64)
-        shape_faces = _np(model.shape_faces, (3,), np.int64)
-        static_vertices = _np(model.static_vertices, (3,))
-        static_faces = _np(model.static_faces, (3,), np.int64)
+        tris = rows(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
+        shape_vertices = rows(model.shape_vertices, (3,))
+        shape_body = rows(model.shape_vertex_body, (), np.int64)
+        shape_faces = rows(model.shape_faces, (3,), np.int64)
+        static_vertices = rows(model.static_vertices, (3,))
+        static_faces = rows(model.static_faces, (3,), np.int64)
         S, G = len(shape_vertices), len(static_vertices)
         faces = np.concatenate([tris, shape_faces + P, static_faces + P + S]).astype(np.int64)
         T, Fs = len(tris), len(shape_faces)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from sim.collision_mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, CollisionMesh
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
+from sim.collision_mesh import CollisionMesh
 from sim.builder import ModelBuilder
 from sim.mesh_io import box_mesh
 

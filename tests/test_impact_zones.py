@@ -1,6 +1,6 @@
 """Impact zones on the tape: the fail-safe's momentum-conserving rigid motion as Warp kernels.
 
-The zone membership is a decision (host union-find, :class:`sim.contact.response.ImpactZones`);
+The zone membership is a decision (host union-find, :class:`sim.contact.zones.ImpactZones`);
 the zone's velocities are replayed on the tape (:meth:`sim.contact.replay.ContactReplay.zone_velocities`).
 Checked here: the Warp motion equals a numpy reference (``_rigid_velocities``, ``pinv``) to 1e-12;
 each zone keeps its linear and angular momentum and moves rigidly (closed form, computed in this
@@ -17,8 +17,9 @@ import torch
 import warp as wp
 
 import sim.rollout as rollout_module
-from sim.collision_mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
-from sim.contact.response import ImpulseCollisionHandler, ImpactZones
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
+from sim.contact.response import ImpulseCollisionHandler
+from sim.contact.zones import ImpactZones
 from sim.builder import ModelBuilder
 from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh

@@ -533,7 +533,7 @@ def test_tape_holds_the_replay_only_no_decisions_or_iterative_solves():
             "push_rhs_kernel"} <= kernels
     # friction: one of the exact forms (all contacts sticking, all sliding, a split of the two in
     # one system, or the per-contact pass)
-    assert kernels & {"sticking_delassus_kernel", "sliding_delassus_kernel", "friction_impulses_kernel"}
+    assert kernels & {"sticking_delassus_kernel", "sliding_impulses_kernel", "friction_impulses_kernel"}
     # the solve's implicit adjoint (a transposed solve), recorded as a function
     assert any(callable(launch) and "_dense_solve" in getattr(launch, "__qualname__", "") for launch in tape.launches)
     for decision in ("ccd_kernel", "pair_ccd_kernel", "pair_proximity_kernel", "solve_contacts_kernel",

@@ -219,16 +219,28 @@ def test_too_few_substeps_stop_with_a_clear_error():
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_replayed_response_keeps_scenes_penetration_free(name):
     """``--response replayed`` (the exact solve that rollouts differentiate) on every scene:
-    contacts happen, the independent checker finds no penetration on any frame, energy bounded.
+    contacts happen, the independent checker finds no penetration on any frame, energy bounded,
+    and :func:`sim.rollout.rollout` of the same model reproduces the run bit for bit.
     The replayed response restores the separation at the position level (the push lifts resting
     cloth without a velocity), which adds potential energy: cloth_drop peaks at 1.012x its
     initial energy in its first 20 steps (measured), hence 1.02."""
     module = SCENES[name]
-    summary, _ = sim_common.simulate(module.build, sim_common.default_args(steps=STEPS, response="replayed"), None,
-                                     name=name, progress=False)
+    args = sim_common.default_args(steps=STEPS, response="replayed")
+    summary, _ = sim_common.simulate(module.build, args, None, name=name, progress=False)
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0
     assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.02
+    # one forward function: the differentiable rollout of the same model ends in the same bits
+    # (the summary's state_sha256 hashes the final positions and velocities)
+    import hashlib
+
+    from sim.rollout import rollout
+
+    res = rollout(sim_common.build_model(module.build, args), STEPS, args.dt, args.substeps)
+    digest = hashlib.sha256()
+    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+        digest.update(np.ascontiguousarray(getattr(res, key)[-1].detach().numpy()).tobytes())
+    assert digest.hexdigest() == summary["state_sha256"], "the scene run and rollout() differ"
 
 
 def test_grazing_scene_cli(tmp_path):

@@ -82,11 +82,18 @@ from core.buffers import RecordedLaunches, Staging, copy_rows, host, zero
 from collision.ccd import ONES3, CandidateNarrowPhase
 from sim.contact.contacts import ContactLimitExceeded, Contacts, Hits
 from kernels.variants import check_settings as check_ccd_settings
-from sim.collision_mesh import VERTEX_BODY as _BODY
-from sim.collision_mesh import VERTEX_PARTICLE as _PARTICLE
-from sim.collision_mesh import VERTEX_STATIC as _STATIC
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
 from sim.collision_mesh import CollisionMesh
+from sim.contact.record import NO_CONTACTS, ContactRecord
 from sim.contact.replay import ContactReplay
+from sim.contact.zones import ImpactZones
+from sim.contact.tuning import (SEPARATION_RATE, PROXIMITY_HYSTERESIS, DEFAULT_SEPARATION_RELATIVE,
+                                  SOLVER_ITERATIONS, SOLVER_TOLERANCE, TOUCHING_RELATIVE, APPROACH_EPS,
+                                  END_OF_SUBSTEP, PLANE_ROUNDING_SLACK, COVER_MARGIN, COVER_SLACK,
+                                  CCD_REACH_SLACK, CCD_REACH_MIN_CANDIDATES, COVER_AHEAD, COVER_AHEAD_LIMIT,
+                                  COVER_SCALES, COVER_SPARSE_CANDIDATES, COVER_DENSE_CANDIDATES,
+                                  DEVICE_SORT_MIN, ACTIVE_SET_ITERATIONS, ACTIVE_SET_COLLIDED_MAX_CONTACTS,
+                                  ACTIVE_SET_PULLING, MAX_HITS_PER_VERTEX, MAX_HITS_MIN)
 from core.tape import active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from kernels.contact_geometry import contact_geometry_kernel
@@ -100,232 +107,6 @@ from kernels.contact_set import (active_set_update_kernel, add_contacts_kernel, 
                                  owner_times_kernel, owner_times_reset_kernel, plane_crossing_kernel,
                                  plane_proximity_kernel, set_impulses_kernel, sort_keys_kernel)
 from sim.model import Model, State
-
-SEPARATION_RATE = 0.1
-"""Fraction of the missing separation ``delta - d`` a proximity impulse restores per substep
-(Bridson et al. 2002 use the same order); larger values make resting contacts jitter."""
-
-PROXIMITY_HYSTERESIS = 1e-3
-"""The proximity pass keeps mesh pairs and rigid vertex-plane pairs up to ``(1 +
-PROXIMITY_HYSTERESIS) delta`` apart, not just nearer than ``delta``: resting contact ends each
-substep at ``delta`` to rounding, and a load-bearing pair that rounding put a hair beyond it
-would otherwise leave the set for a substep, drop its load and kick the cloth (a draped cloth
-crept 2.6e-5 m/s). A pair beyond ``delta`` may approach until it reaches ``delta`` at the end of
-the substep (:func:`kernels.contact_geometry.contact_geometry_kernel`), so the band holds no pair that
-approaches slower than the separation speed before it touches ``delta``; one approaching faster
-bounces (restitution) up to ``1e-3 delta`` early."""
-
-DEFAULT_SEPARATION_RELATIVE = 1e-4
-"""Separation used when the model's thickness is 0: this fraction of the diagonal of the
-collidable vertices' bounding box at the start (1e-4 m for a 1 m scene)."""
-
-SOLVER_ITERATIONS = 500
-"""Most projected Gauss-Seidel sweeps per impulse solve (it stops earlier once every contact's normal
-velocity is within :data:`SOLVER_TOLERANCE` of its target)."""
-
-SOLVER_TOLERANCE = 0.05
-"""Stop the Gauss-Seidel sweeps when no contact's normal velocity is below its target by more than this
-fraction of the separation speed ``SEPARATION_RATE delta / h``."""
-
-TOUCHING_RELATIVE = 1e-6
-"""Proximity pairs closer than this fraction of the separation count as touching: their offset
-direction is rounding noise, so the normal comes from the primitives' geometry instead (a
-face's outward normal, crossing edges' cross product), or, where the geometry gives none (a
-vertex on a face's border, edges touching at an end), the pair joins no contact set."""
-
-APPROACH_EPS = 1e-12
-"""A CCD hit counts as approaching when its normal relative velocity is below ``-APPROACH_EPS``
-times the contact's largest vertex speed plus the separation speed (float64 rounding of a
-velocity that is exactly separating or tangential stays far inside)."""
-
-END_OF_SUBSTEP = 1e-9
-"""A CCD hit this close (relative) to the end of the substep lies on the end of the planned path;
-its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
-
-PLANE_ROUNDING_SLACK = 1e-9
-"""A particle counts as a plane's proximity contact below ``(1 - PLANE_ROUNDING_SLACK) delta``:
-the integrator's plane stage leaves it at ``delta`` exactly, which the distance's rounding may
-put a hair below (rigid vertices, which only the handler holds, count up to ``(1 +
-PROXIMITY_HYSTERESIS) delta``)."""
-
-COVER_MARGIN = 4.0
-"""Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
-and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
-covered boxes (the predicted motion continued, :data:`COVER_AHEAD`) reuse its candidates
-(:class:`collision.ccd.CandidateNarrowPhase`); a round that moves further queries afresh."""
-
-COVER_SLACK = 1.0
-"""A substep keeps an earlier substep's broad-phase query (instead of a new one) while its start
-and predicted end positions lie within this many separations ``delta`` of the boxes of the
-covered motion (per coordinate): slow and resting contact moves less than that per substep, so
-one query serves several substeps. The
-proximity pass still has ``0.45 (COVER_MARGIN - 1) delta - COVER_SLACK delta >= 0`` of room and
-the CCD rounds ``0.45 COVER_MARGIN delta - COVER_SLACK delta``; a call beyond its room queries
-afresh, so the contacts are the same as with a query per substep."""
-
-CCD_REACH_SLACK = 0.5
-"""How much farther than predicted [separations] a vertex may end from its start before the
-CCD rounds test every candidate instead of those that the proximity pass kept for them
-(:meth:`ImpulseCollisionHandler._proximity_hits`). Resting contact's rounds change the
-predicted motion by about ``SEPARATION_RATE`` separations; measured over 100 steps, 0.5 kept
-the short list in 96% of cloth_drop's CCD rounds (154 pairs instead of ~2000), 0.25 in 89%
-(55 pairs), 1.0 in 98% (343 pairs)."""
-
-CCD_REACH_MIN_CANDIDATES = 64
-"""Fewest candidate pairs of the cover for which the proximity pass keeps the CCD rounds'
-pairs: below it, testing them all costs about what keeping them does (rigid_toss has ~30-50).
-A wide cover (:data:`COVER_SCALES`) holds a few hundred: cloth_rigid's CCD rounds then test 63
-pairs per substep instead of 233."""
-
-COVER_AHEAD = 5.0
-"""The substep's broad-phase query covers each vertex's predicted motion continued for this
-many more substeps (at most :data:`COVER_AHEAD_LIMIT` separations per coordinate), so that
-steady motion stays inside its covered box, and the cover is kept (:data:`COVER_SLACK`), for
-several substeps. The hits are the same (the calls check their own motion against the covered
-one); the pairs the query finds grow only along the motion. Measured on the benchmark scenes
-(300 steps): broad-phase queries 2479 -> 872 (cloth_rigid, whose cloth swings about 4
-separations per substep), 1117 -> 386 (cloth_drop), 346 -> 83 (rigid_toss)."""
-
-COVER_AHEAD_LIMIT = 32.0
-"""Longest continuation [separations] of a vertex's motion in the broad-phase query (fast
-vertices leave their cover anyway; this keeps their boxes, and the candidate pairs, small)."""
-
-COVER_SCALES = (1.0, 2.0, 4.0, 8.0)
-"""Factors on :data:`COVER_MARGIN`, :data:`COVER_SLACK` and :data:`COVER_AHEAD_LIMIT`: a scene
-whose broad-phase queries find few candidate pairs (a cloth swinging free, a ball rolling on a
-floor) widens its cover a step after each query that finds fewer than
-:data:`COVER_SPARSE_CANDIDATES`, and narrows it a step after each that finds more than
-:data:`COVER_DENSE_CANDIDATES` (a draped cloth). A wide cover is kept for more substeps of
-fast or turning motion, at the price of more candidates to test per call; the hits are the same
-whatever the cover. Measured on cloth_rigid (hanging cloth and rolling ball), steps 20-100:
-0.46 queries per substep at factor 1 (29 candidates each), 0.18 at factor 8 (186)."""
-
-COVER_SPARSE_CANDIDATES = 128
-"""See :data:`COVER_SCALES`."""
-
-COVER_DENSE_CANDIDATES = 1024
-"""See :data:`COVER_SCALES`."""
-
-DEVICE_SORT_MIN = 2048
-"""Off the CPU, a detection pass with more hits than this is put in order by Warp's radix sort
-(a thread per key) instead of the one-thread heap sort (:func:`kernels.contact_set.sort_keys_kernel`);
-both give the same order (distinct keys). On the CPU the heap sort is used always: its threads
-run one after another anyway, and the radix sort costs ~75 us at any size there."""
-
-ACTIVE_SET_ITERATIONS = 20
-"""Most repairs of the active set (drop pulling contacts, add violated ones, switch between
-sticking and sliding) after the exact solve of the replayed response."""
-
-ACTIVE_SET_COLLIDED_MAX_CONTACTS = 128
-"""Largest contact set in which the rows that a CCD hit reached are repaired to the approach
-test's tolerance (``APPROACH_EPS`` times the separation speed) instead of the active set's:
-their primitives meet within the substep, so any approach left over is a hit of the next CCD
-round again, and a cloth landing on a sphere and a box ran its eight rounds into the fail-safe
-on one contact violated by less than the active set's tolerance. Larger sets (a ball at
-200 m/s into a cloth: a few hundred rows) keep the active set's tolerance: there the tight one
-made the repairs thrash for minutes per step, and the fail-safe takes what is left."""
-
-ACTIVE_SET_PULLING = 1e-9
-"""An active contact leaves the replayed response's active set when its exact normal impulse is
-below ``-ACTIVE_SET_PULLING`` times the largest one (it pulls; rounding of a zero impulse stays
-above)."""
-
-
-MAX_HITS_PER_VERTEX = 8
-"""A collision round whose narrow phase finds more hits than this many per collision vertex (at least
-:data:`MAX_HITS_MIN`) stops with :class:`ContactLimitExceeded`: a resting cloth has about one
-per vertex, and tens of thousands of hits mean a substep far too long for the motion (every
-triangle sweeping across the scene), whose exact solve would take minutes."""
-MAX_HITS_MIN = 4096
-
-
-class _CallContacts:
-    """The contacts of one handler call, for its ``last_*`` statistics, worked out when first
-    read: the recorder, the implicit integrator and the benchmarks read them, a plain stepping
-    loop does not.
-
-    Args:
-        cs: the call's contact set: a device :class:`sim.contact.contacts.Contacts` (read where it
-            is until :meth:`materialize` copies it: the handler calls that before the next call
-            reuses the buffers), or None.
-        x0, x1: device arrays of the vertices' positions (V + 1, 3) at the start and the
-            planned end [m].
-        h: the substep [s].
-        vertex_type: (V + 1,) the vertex kinds.
-    """
-
-    def __init__(self, cs=None, x0=None, x1=None, h=1.0, vertex_type=None) -> None:
-        self._h, self._vertex_type = h, vertex_type
-        self._device = None
-        self._rows = None  # host (kind, vertex indices, weights, normals, toi, normal impulse), x0, x1
-        if cs is not None and cs.count:
-            self._device = (cs, cs.count, x0, x1)
-        self._count = None
-        self._contacts = None
-        self._body_particles = None
-
-    @property
-    def reads_buffers(self) -> bool:
-        """Whether the record still reads the handler's device buffers."""
-        return self._device is not None
-
-    def materialize(self) -> None:
-        """Copies what the record reads out of the handler's buffers (before they are reused)."""
-        if self._device is None:
-            return
-        cs, count, x0, x1 = self._device
-        self._device = None
-        rows = tuple(np.array(host(getattr(cs, name))[:count])
-                     for name in ("kind", "vertices", "weights", "normals", "toi", "normal_impulse"))
-        active = rows[5] > 0
-        self._rows = (rows, np.array(host(x0)) if active.any() else None, np.array(host(x1)) if active.any() else None)
-
-    def _host_rows(self):
-        self.materialize()
-        return self._rows
-
-    @property
-    def count(self) -> int:
-        """How many contacts received an impulse."""
-        if self._count is None:
-            if self._device is not None:  # the impulses only (no copy of the rest)
-                cs, count = self._device[:2]
-                self._count = int(np.count_nonzero(host(cs.normal_impulse)[:count] > 0))
-            else:
-                self._count = 0 if self._rows is None else int(np.count_nonzero(self._rows[0][5] > 0))
-        return self._count
-
-    def contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(points (C, 3) [m]: side A's closest point at ``t*`` on the straight paths x0 -> x1,
-        normals (C, 3), times of impact (C,) [s]) of the contacts that received an impulse."""
-        if self._contacts is None:
-            self._contacts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
-            if self.count:
-                (kind, idx, w, n, toi, jn), x0, x1 = self._host_rows()
-                active = jn > 0
-                ia = idx[active]
-                side_a = np.abs(np.where(np.arange(4) < np.where(kind[active] == 1, 2, 1)[:, None], w[active], 0.0))
-                y = x0[ia] + (toi[active] / self._h)[:, None, None] * (x1[ia] - x0[ia])
-                self._contacts = (np.einsum("ck,ckd->cd", side_a, y), n[active], toi[active])
-        return self._contacts
-
-    def body_particles(self) -> np.ndarray:
-        """(K,) int64 the particles (sorted, distinct) that share a contact with a rigid body's
-        vertex."""
-        if self._body_particles is None:
-            self._body_particles = np.zeros(0, dtype=np.int64)
-            rows = self._host_rows()
-            if rows is not None:
-                idx = rows[0][1].astype(np.int64)
-                types = self._vertex_type[idx]
-                touch = (types == _BODY).any(axis=1)
-                if touch.any():
-                    self._body_particles = np.unique(idx[touch][types[touch] == _PARTICLE])
-        return self._body_particles
-
-
-_NO_CONTACTS = _CallContacts()
-"""The record of a call without contacts (shared: a record is not changed after it is made)."""
 
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
 """Keys of ``ImpulseCollisionHandler(ccd_options=...)``: the narrow phase's knobs."""
@@ -359,7 +140,7 @@ def contact_separation(model: Model, mesh: CollisionMesh | None = None) -> float
     collidable vertices' bounding box at the model's start (1e-6 m without vertices)."""
     if float(model.thickness) > 0.0:
         return float(model.thickness)
-    mesh = CollisionMesh.from_model(model) if mesh is None else mesh
+    mesh = model.collision_mesh if mesh is None else mesh
     if not mesh.vertex_count:
         return 1e-6
     x = mesh.positions(model.particle_q.numpy()[: mesh.particle_count] if mesh.particle_count else np.zeros((0, 3)),
@@ -410,7 +191,7 @@ class ImpulseCollisionHandler:
         self.differentiable = bool(differentiable)
         self.max_derivative = float(max_derivative)
         m = model
-        mesh = self.mesh = CollisionMesh.from_model(model)
+        mesh = self.mesh = model.collision_mesh
         self.n_particles = mesh.particle_count
         self.shape_offset = mesh.shape_offset
         self.n_shape = mesh.shape_count
@@ -438,7 +219,7 @@ class ImpulseCollisionHandler:
             static.append(True)
         # one dummy static vertex (index n_vertices, at the origin): the second side of
         # vertex-plane contacts
-        self.vertex_type = np.append(mesh.vertex_type, _STATIC).astype(np.int64)
+        self.vertex_type = np.append(mesh.vertex_type, VERTEX_STATIC).astype(np.int64)
         self.vertex_owner = np.append(mesh.vertex_owner, 0).astype(np.int64)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
         # the vertices the vertex-plane tests cover (movable particles and the rigid surface
@@ -469,15 +250,15 @@ class ImpulseCollisionHandler:
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
         # vertices an impulse can move: rigid ones and unpinned particles
         inv_mass = np.zeros(len(self.vertex_type))
-        is_particle = self.vertex_type == _PARTICLE
+        is_particle = self.vertex_type == VERTEX_PARTICLE
         inv_mass[is_particle] = self.particle_inv_mass[self.vertex_owner[is_particle]]
-        self._mobile_vertex = (self.vertex_type == _BODY) | (inv_mass > 0)
+        self._mobile_vertex = (self.vertex_type == VERTEX_BODY) | (inv_mass > 0)
         self.n_bodies = int(m.body_count) if self.n_shape else 0
         self.body_inv_mass = m.body_inv_mass.numpy() if self.n_bodies else np.zeros(0)
         self._particle_inv_mass_w = self._staging.put("inv_mp", self.particle_inv_mass, wp.float64)
         self._body_inv_mass_w = self._staging.put("inv_mb", self.body_inv_mass, wp.float64)
         self.separation = contact_separation(model, mesh)
-        self._last = self._last_call = _NO_CONTACTS  # the last call's contacts (restorable / not)
+        self._last = self._last_call = NO_CONTACTS  # the last call's contacts (restorable / not)
         self.failsafe_count = 0
         self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
         self.untaped_substeps = 0
@@ -632,14 +413,14 @@ class ImpulseCollisionHandler:
                     have = 0 if getattr(state, name) is None else getattr(state, name).shape[0]
                     raise ValueError(f"{label}.{name}: {have} rows, the model has {count}")
 
-    def _note_contacts(self, record: _CallContacts) -> None:
+    def _note_contacts(self, record: ContactRecord) -> None:
         """Makes ``record`` the last call's contacts (:attr:`last_contacts`, ...)."""
         self._last = self._last_call = record
         if record.reads_buffers:
             self._records.add(record)
 
     def __call__(self, state_in: State, state_pred: State, h: float) -> State | None:
-        self._note_contacts(_NO_CONTACTS)
+        self._note_contacts(NO_CONTACTS)
         if self.broad_phase is None:
             return None
         self._check_states(state_in, state_pred)
@@ -713,7 +494,7 @@ class ImpulseCollisionHandler:
         if planned is None:  # nothing changed the prediction (no contact, no zone grew)
             return None
         x1p_w, bq1_w, _, x1_w, _ = planned
-        self._note_contacts(_CallContacts(cs, x0_w, x1_w, h, self.vertex_type))
+        self._note_contacts(ContactRecord(cs, x0_w, x1_w, h, self.vertex_type))
         return State(
             particle_q=x1p_w if P else state_pred.particle_q,
             particle_qd=vel[0] if P else state_pred.particle_qd,
@@ -996,206 +777,9 @@ class ImpulseCollisionHandler:
                 put("zone_b", zones.bodies.astype(np.int32), wp.int32) if self.n_bodies else self._no_zone_b)
 
     def _call_replayed(self, state_in: State, state_pred: State, h: float) -> State | None:
-        """The response as decisions and a taped replay, both on the device
-        (:class:`sim.contact.replay.ContactReplay`): the result is the replay's, exact for the
-        decided contact set (impulses from the active set's equations, not Gauss-Seidel sweeps),
-        and differentiable when a ``wp.Tape`` is recording. The decisions (the contact set, the
-        root slots, the active set and its repairs, the earliest contact per owner) are made by
-        the kernels of :mod:`kernels.contact_set` off the tape; the launches that depend smoothly
-        on the state are recorded. The fail-safe's impact zones are taped too: their membership is
-        decided on the host from the approaching hits (rare), their momentum-conserving rigid
-        motion is replayed (:meth:`sim.contact.replay.ContactReplay.zone_velocities`), so every
-        substep is taped and ``untaped_substeps`` stays 0."""
-        R = self._replay
-        R.begin()  # the previous call's results were copied by the integrator: its arrays are free
-        P, B = self.n_particles, self.n_bodies
-        m = self.model
-        nv = self.n_vertices
-        xq0 = state_in.particle_q if P else None
-        bq0_w = state_in.body_q if B else None
-        vm_p = state_pred.particle_qd if P else None
-        vm_b = state_pred.body_qd if B else None
-        vm = (vm_p if P else R.empty_vec, vm_b if B else R.empty_twist)
-        X0, L0, inv_I = R.pose_start(xq0, bq0_w)
-        delta = self.separation
-        self._sep_speed = delta / h
-        mu = float(m.friction)
-        cs = self._contacts
-        cs.clear()
-        zones = None
-        zone_flags = (self._no_zone_p, self._no_zone_b)
-        # the taped contact geometry, the velocities and those that move the positions
-        st = {"dev": None, "vp": vm_p, "vb": vm_b, "xp": vm_p, "xb": vm_b}
-        tol = SOLVER_TOLERANCE * SEPARATION_RATE * self._sep_speed
-        resting = (*self._v_start, SEPARATION_RATE * self._sep_speed)  # contact_geometry_kernel's bounce threshold
-        launch = self._launches.launch
-
-        def current():
-            return (st["vp"] if P else R.empty_vec, st["vb"] if B else R.empty_twist)
-
-        def owners():
-            """Each owner's earliest contact time and its row (decisions: fresh arrays while a
-            tape records, which the taped geometry and integration read). A member of an impact
-            zone has time 0 and row -2: it moves with the zone's rigid velocity over the whole
-            substep, so later hits see that velocity at any ``t*`` (as in the Gauss-Seidel
-            response; before the device decisions the replay kept its earliest contact time
-            there)."""
-            take = R.take
-            tp, tb = take(max(P, 1), wp.float64, zero=False, grad=False), take(max(B, 1), wp.float64, zero=False, grad=False)
-            po, bo = take(max(P, 1), wp.int32, zero=False, grad=False), take(max(B, 1), wp.int32, zero=False, grad=False)
-            kp, kb = self._staging.empty("owner_key_p", P, wp.int32), self._staging.empty("owner_key_b", B, wp.int32)
-            self._owner_times(tp, tb, zone_flags)
-            launch("r_owner_key_reset", owner_rows_reset_kernel, P + B, [P, kp, kb])
-            if cs.count:
-                launch("r_owner_rows", owner_rows_kernel, cs.count, [
-                    cs.vertices, cs.weights, cs.toi, cs.timed, R.vertex_type, R.vertex_owner, tp, tb, kp, kb])
-            launch("r_owner_finish", owner_rows_finish_kernel, P + B, [P, kp, kb, *zone_flags, po, bo])
-            return po, bo, tp, tb
-
-        def plan():
-            po, bo, tp, tb = owners()
-            toi = st["dev"][0] if st["dev"] is not None else R.take(1, wp.float64, grad=False)
-            # positions move with the velocities plus the push (the separation restored)
-            X1p, BQ1 = R.integrate(xq0, state_pred.particle_q if P else None, vm_p, st["vp"], st["xp"], bq0_w,
-                                   state_pred.body_q if B else None, vm_b, st["vb"], st["xb"], po, bo, toi, h)
-            return X1p, BQ1, tp, tb
-
-        def geometry(X1, tp, tb):
-            H = self._hits
-            rows = {"vertices": H.vertices, "kind": H.kind, "source": H.source, "detected": H.detected, "plane": H.plane}
-            return R.geometry(X0, X1, L0, rows, H.count, *self._v_start, vm_p, st["vp"], vm_b, st["vb"], tp, tb, h, delta,
-                              SEPARATION_RATE, TOUCHING_RELATIVE, self.max_derivative,
-                              bool(self.ccd_options))  # a generated narrow phase numbers roots its own way
-
-        def add(out, all_new: bool, approaching: int):
-            take, c = R.take, cs.count + (self._hits.count if all_new else approaching)
-            merge = (take(c, wp.int32, zero=False, grad=False), take(c, wp.int32, zero=False, grad=False),
-                     take(c, wp.int32, zero=False, grad=False))
-            self._add_hits(all_new, approaching, out, merge)
-            if cs.count:  # touching pairs with no defined normal join no set: it may stay empty
-                st["dev"] = R.merge(st["dev"], (out[0], out[3], out[1], out[2], out[4]), *merge, cs.count)
-
-        def exact():
-            # decide: the active set from projected Gauss-Seidel on top of the current velocities,
-            # then replay the exact normal solve and repair the set (drop pulling contacts, add
-            # violated ones) until it holds
-            C, take = cs.count, R.take
-            with paused_tape():
-                dec = self._velocities_of(*current())
-                self._solve(dec, L0, inv_I)
-            # the set's rows as the taped solves read them (one copy while a tape records)
-            vertices, kinds = R.frozen(cs.vertices, C), R.frozen(cs.kind, C)
-            mobile = self._staging.empty("mobile_rows", C, wp.int32)
-            active = take(C, wp.int32, zero=False, grad=False)
-            launch("r_initial_active", initial_active_kernel, C, [
-                cs.vertices, cs.weights, cs.normal_impulse, self._mobile_vertex_w, mobile, active])
-            taped = active  # the set whose solve the tape holds (the first trial's)
-            tape = active_tape()
-            changes = self._staging.empty("active_changes", 1, wp.int32)
-
-            def repair(solved, active):
-                """The repaired set after the trial ``solved`` of ``active`` and how many contacts
-                it changes (:func:`kernels.contact_set.active_set_update_kernel`)."""
-                vp_t, vb_t, normal_t = solved[:3]
-                repaired = take(C, wp.int32, zero=False, grad=False)
-                launch("r_active_update", active_set_update_kernel, 1, [
-                    C, cs.vertices, cs.weights, cs.normals, cs.targets, cs.collided, mobile, active, normal_t,
-                    R.vertex_type, R.vertex_owner, L0, vp_t if P else R.empty_vec, vb_t if B else R.empty_twist,
-                    float(tol), float(collided_tol), float(ACTIVE_SET_PULLING),
-                    self._staging.empty("active_jn", C, wp.float64), repaired, changes])
-                return repaired, int(host(changes)[0])
-
-            collided_tol = APPROACH_EPS * self._sep_speed if C <= ACTIVE_SET_COLLIDED_MAX_CONTACTS else tol
-            for iteration in range(ACTIVE_SET_ITERATIONS):
-                share = self._friction_share(active) if mu > 0 else None
-                # the first trial is recorded (usually it is the final one); repair trials stay off
-                # the tape (their O(n^2) matrices would be kept to the end)
-                with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
-                    solved = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b, share, resting)
-                if iteration == 0:
-                    recorded = solved
-                repaired, n_changes = repair(solved, active)
-                if not n_changes:
-                    break
-                if iteration == ACTIVE_SET_ITERATIONS - 1:
-                    self.unsettled_active_sets += 1
-                    break  # the last trial's set stands, taped or not: one forward function
-                active = repaired
-                self.active_set_repairs += 1
-            vp_d, vb_d, normal, moving = solved
-            if tape is not None and active is not taped and self._flags_differ(taped, active, C):
-                # the replay of the final active set, recorded
-                share = self._friction_share(active) if mu > 0 else None
-                vp_d, vb_d, normal, moving = R.solve(st["dev"], vertices, kinds, C, active, L0, inv_I, vm_p, vm_b,
-                                                     share, resting)
-            elif tape is not None:
-                # the repairs came back to the first trial's set: its recorded solve (the same
-                # values) is the one the tape continues from, not the last, unrecorded trial
-                vp_d, vb_d, normal, moving = recorded
-            if P:
-                st["vp"], st["xp"] = vp_d, moving[0]
-            if B:
-                st["vb"], st["xb"] = vb_d, moving[1]
-            launch("r_set_impulses", set_impulses_kernel, C, [
-                active, normal, cs.normals, cs.normal_impulse, cs.friction_impulse])
-
-        # 1. proximity contacts at the start of the substep
-        with paused_tape():  # decisions: off the tape
-            # one broad-phase query while the rounds' motion stays near the predicted one
-            x0 = host(X0)
-            x1_pred = host(self._pose("predicted", state_pred.particle_q, state_pred.body_q))[: nv + 1]
-            self._cover(x0[:nv], x1_pred[:nv], delta)
-            found = self._proximity_hits(x0, x1_pred, X0, delta)
-        if found:
-            add(geometry(X0, self._inf_time_p, self._inf_time_b), True, 0)  # no contact time yet
-            if cs.count:
-                exact()
-
-        # 2-5. CCD rounds on the planned motion; the result is the last round's plan: every exit
-        # follows a plan with nothing changed after it
-        failsafe = False
-        for iteration in itertools.count():
-            X1p, BQ1, tp, tb = plan()
-            X1 = R.positions(X1p if P else None, BQ1 if B else None)
-            with paused_tape():  # decisions: off the tape
-                count = self._ccd_hits(x0, host(X1), X1, 1)
-            if not count:
-                break
-            out = geometry(X1, tp, tb)
-            with paused_tape():
-                approaching = self._approach(X0, X1, L0, out[:3], vm, current(), (tp, tb), h)
-            if not approaching:
-                break
-            if iteration >= self.max_iterations:
-                failsafe = True
-                if zones is None:
-                    zones = ImpactZones(P, B, self.particle_inv_mass)
-                idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
-                if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
-                    break
-                # the zones' momentum-conserving rigid motion, on the tape (membership decided
-                # above)
-                particle_zone, body_zone, n_zones = zones.labels()
-                st["vp"], st["vb"] = R.zone_velocities(st["vp"], st["vb"], particle_zone, body_zone, n_zones, xq0,
-                                                       bq0_w, m.body_mass if B else None,
-                                                       m.body_inertia if B else None)
-                zone_flags = self._zone_flags(zones)
-                st["xp"], st["xb"] = R.zone_moving(st["xp"], st["xb"], *zone_flags, st["vp"], st["vb"])
-                continue
-            self.ccd_events += approaching
-            add(out, False, approaching)
-            exact()
-        if failsafe:
-            self.failsafe_count += 1
-        if cs.count == 0 and not failsafe:
-            return None
-        self._note_contacts(_CallContacts(cs, X0, X1, h, self.vertex_type))
-        return State(
-            particle_q=X1p if P else state_pred.particle_q,
-            particle_qd=st["vp"] if P else state_pred.particle_qd,
-            body_q=BQ1 if B else state_pred.body_q,
-            body_qd=st["vb"] if B else state_pred.body_qd,
-        )
+        """The response as decisions and a taped replay, both on the device: one
+        :class:`ReplayedSubstep` (see there)."""
+        return ReplayedSubstep(self, state_in, state_pred, h).run()
 
     def _friction_share(self, active: wp.array) -> wp.array:
         """Per contact of the set: one over the largest number of active contacts (``active``)
@@ -1220,67 +804,250 @@ class ImpulseCollisionHandler:
         return bool(host(counter)[0])
 
 
-class ImpactZones:
-    """Union-find over particles (nodes 0..P-1), bodies (P..P+B-1) and "the world" (P+B: static
-    vertices and pinned particles) for the rigid-impact-zone fail-safe of one substep."""
+class ReplayedSubstep:
+    """One substep of the replayed response (design.md "Differentiating collision response:
+    decide, then replay"), as named stages on the device (:class:`sim.contact.replay.ContactReplay`).
 
-    def __init__(self, n_particles: int, n_bodies: int, particle_inv_mass: np.ndarray) -> None:
-        self.P, self.B = n_particles, n_bodies
-        self.parent = np.arange(n_particles + n_bodies + 1)
-        self.world = n_particles + n_bodies
-        self.pinned = np.flatnonzero(particle_inv_mass[:n_particles] == 0)
-        self.particles = np.zeros(n_particles, dtype=bool)
-        self.bodies = np.zeros(n_bodies, dtype=bool)
+    The result is the replay's, exact for the decided contact set (impulses from the active set's
+    equations, not Gauss-Seidel sweeps), and differentiable when a ``wp.Tape`` is recording. The
+    decisions (the contact set, the root slots, the active set and its repairs, the earliest
+    contact per owner) are made by the kernels of :mod:`kernels.contact_set` off the tape; the
+    launches that depend smoothly on the state are recorded. The fail-safe's impact zones are
+    taped too: their membership is decided on the host from the approaching hits (rare), their
+    momentum-conserving rigid motion is replayed
+    (:meth:`sim.contact.replay.ContactReplay.zone_velocities`), so every substep is taped.
 
-    def _find(self, i: int) -> int:
-        root = i
-        while self.parent[root] != root:
-            root = self.parent[root]
-        while self.parent[i] != root:
-            self.parent[i], i = root, self.parent[i]
-        return root
+    Stages, in order (:meth:`run`): :meth:`proximity` (contacts at the start of the substep and
+    their :meth:`solve`), then CCD rounds on the :meth:`plan` until nothing approaches, each
+    adding its approaching hits (:meth:`geometry`, :meth:`add`) and solving again; after
+    ``max_iterations`` rounds the fail-safe's :meth:`grow_zones`.
 
-    def merge(self, vertex_type: np.ndarray, vertex_owner: np.ndarray) -> bool:
-        """Joins the owners of each row of (C, 4) vertex types / owners into one zone; returns
-        whether any zone grew."""
-        grew = False
-        nodes = np.where(vertex_type == _PARTICLE, vertex_owner,
-                         np.where(vertex_type == _BODY, self.P + vertex_owner, self.world))
-        pinned = np.isin(vertex_owner, self.pinned) & (vertex_type == _PARTICLE)
-        nodes = np.where(pinned, self.world, nodes)
-        for row in nodes:
-            root = self._find(int(row[0]))
-            for node in row[1:]:
-                other = self._find(int(node))
-                if other != root:
-                    grew = True
-                    # the world stays a root so that zones touching it are recognised
-                    if other == self.world:
-                        self.parent[root] = other
-                        root = other
-                    else:
-                        self.parent[other] = root
-        for node in np.unique(nodes):
-            if node < self.P:
-                grew |= not self.particles[node]
-                self.particles[node] = True
-            elif node < self.world:
-                grew |= not self.bodies[node - self.P]
-                self.bodies[node - self.P] = True
-        return bool(grew)
+    Args:
+        handler: the :class:`ImpulseCollisionHandler` whose buffers and decisions the substep uses.
+        state_in: the start State; state_pred: the predicted end State (velocities ``v-``).
+        h: the substep [s].
+    """
 
-    def labels(self):
-        """The zones as ints for the taped replay (:meth:`sim.contact.replay.ContactReplay.zone_velocities`):
-        per particle and per body -1 (in no zone), -2 (in the zone touching the world: at rest)
-        or the index of its free zone; and the number of free zones."""
-        particle_zone = np.full(self.P, -1, dtype=np.int64)
-        body_zone = np.full(self.B, -1, dtype=np.int64)
-        members_p = np.flatnonzero(self.particles)
-        members_b = np.flatnonzero(self.bodies)
-        roots = np.array([self._find(int(i)) for i in members_p] + [self._find(int(self.P + i)) for i in members_b],
-                         dtype=np.int64)
-        free = np.unique(roots[roots != self.world])
-        index = np.where(roots == self.world, -2, np.searchsorted(free, roots))
-        particle_zone[members_p] = index[: len(members_p)]
-        body_zone[members_b] = index[len(members_p):]
-        return particle_zone, body_zone, len(free)
+    def __init__(self, handler: "ImpulseCollisionHandler", state_in: State, state_pred: State, h: float) -> None:
+        self.handler = hd = handler
+        self.replay = R = hd._replay
+        R.begin()  # the previous call's results were copied by the integrator: its arrays are free
+        self.P, self.B = P, B = hd.n_particles, hd.n_bodies
+        self.state_in, self.state_pred, self.h = state_in, state_pred, h
+        self.xq0 = state_in.particle_q if P else None
+        self.bq0_w = state_in.body_q if B else None
+        self.vm_p = state_pred.particle_qd if P else None
+        self.vm_b = state_pred.body_qd if B else None
+        self.vm = (self.vm_p if P else R.empty_vec, self.vm_b if B else R.empty_twist)
+        self.X0, self.L0, self.inv_I = R.pose_start(self.xq0, self.bq0_w)
+        self.delta = hd.separation
+        hd._sep_speed = self.delta / h
+        self.mu = float(hd.model.friction)
+        self.contacts = hd._contacts
+        self.contacts.clear()
+        self.zones = None
+        self.zone_flags = (hd._no_zone_p, hd._no_zone_b)
+        # the taped contact geometry of the set (None before its first contact), the velocities
+        # and those that move the positions
+        self.rows = None
+        self.vp, self.vb, self.xp, self.xb = self.vm_p, self.vm_b, self.vm_p, self.vm_b
+        self.tolerance = SOLVER_TOLERANCE * SEPARATION_RATE * hd._sep_speed
+        self.resting = (*hd._v_start, SEPARATION_RATE * hd._sep_speed)  # contact_geometry_kernel's bounce threshold
+        self.launch = hd._launches.launch
+
+    def current(self):
+        """The velocities after the impulses so far (particles, bodies)."""
+        R = self.replay
+        return (self.vp if self.P else R.empty_vec, self.vb if self.B else R.empty_twist)
+
+    def owners(self):
+        """Each owner's earliest contact time and its row (decisions: fresh arrays while a
+        tape records, which the taped geometry and integration read). A member of an impact
+        zone has time 0 and row -2: it moves with the zone's rigid velocity over the whole
+        substep, so later hits see that velocity at any ``t*`` (as in the Gauss-Seidel
+        response)."""
+        hd, R, cs, P, B, launch = self.handler, self.replay, self.contacts, self.P, self.B, self.launch
+        take = R.take
+        tp, tb = take(max(P, 1), wp.float64, zero=False, grad=False), take(max(B, 1), wp.float64, zero=False, grad=False)
+        po, bo = take(max(P, 1), wp.int32, zero=False, grad=False), take(max(B, 1), wp.int32, zero=False, grad=False)
+        kp, kb = hd._staging.empty("owner_key_p", P, wp.int32), hd._staging.empty("owner_key_b", B, wp.int32)
+        hd._owner_times(tp, tb, self.zone_flags)
+        launch("r_owner_key_reset", owner_rows_reset_kernel, P + B, [P, kp, kb])
+        if cs.count:
+            launch("r_owner_rows", owner_rows_kernel, cs.count, [
+                cs.vertices, cs.weights, cs.toi, cs.timed, R.vertex_type, R.vertex_owner, tp, tb, kp, kb])
+        launch("r_owner_finish", owner_rows_finish_kernel, P + B, [P, kp, kb, *self.zone_flags, po, bo])
+        return po, bo, tp, tb
+
+    def plan(self):
+        """The planned end positions (particles, body poses) and the owners' contact times: the
+        positions move with the velocities plus the push (the separation restored), each owner
+        from its earliest contact time (taped)."""
+        R, P, B, sp = self.replay, self.P, self.B, self.state_pred
+        po, bo, tp, tb = self.owners()
+        toi = self.rows[0] if self.rows is not None else R.take(1, wp.float64, grad=False)
+        X1p, BQ1 = R.integrate(self.xq0, sp.particle_q if P else None, self.vm_p, self.vp, self.xp, self.bq0_w,
+                               sp.body_q if B else None, self.vm_b, self.vb, self.xb, po, bo, toi, self.h)
+        return X1p, BQ1, tp, tb
+
+    def geometry(self, X1, tp, tb):
+        """The taped geometry (time, normal, weights, targets) of the detection pass's hits on
+        the motion from the start to ``X1`` (:meth:`sim.contact.replay.ContactReplay.geometry`)."""
+        hd, H = self.handler, self.handler._hits
+        rows = {"vertices": H.vertices, "kind": H.kind, "source": H.source, "detected": H.detected, "plane": H.plane}
+        return self.replay.geometry(self.X0, X1, self.L0, rows, H.count, *hd._v_start, self.vm_p, self.vp, self.vm_b,
+                                    self.vb, tp, tb, self.h, self.delta, SEPARATION_RATE, TOUCHING_RELATIVE,
+                                    hd.max_derivative,
+                                    bool(hd.ccd_options))  # a generated narrow phase numbers roots its own way
+
+    def add(self, out, all_new: bool, approaching: int) -> None:
+        """Adds the pass's hits (all, or the ``approaching`` ones) to the contact set and merges
+        their taped geometry ``out`` into the set's rows."""
+        hd, R, cs = self.handler, self.replay, self.contacts
+        take, c = R.take, cs.count + (hd._hits.count if all_new else approaching)
+        merge = (take(c, wp.int32, zero=False, grad=False), take(c, wp.int32, zero=False, grad=False),
+                 take(c, wp.int32, zero=False, grad=False))
+        hd._add_hits(all_new, approaching, out, merge)
+        if cs.count:  # touching pairs with no defined normal join no set: it may stay empty
+            self.rows = R.merge(self.rows, (out[0], out[3], out[1], out[2], out[4]), *merge, cs.count)
+
+    def repair(self, solved, active, mobile, changes):
+        """The repaired set after the trial ``solved`` of ``active`` and how many contacts it
+        changes (:func:`kernels.contact_set.active_set_update_kernel`)."""
+        hd, R, cs, P, B = self.handler, self.replay, self.contacts, self.P, self.B
+        C = cs.count
+        vp_t, vb_t, normal_t = solved[:3]
+        repaired = R.take(C, wp.int32, zero=False, grad=False)
+        self.launch("r_active_update", active_set_update_kernel, 1, [
+            C, cs.vertices, cs.weights, cs.normals, cs.targets, cs.collided, mobile, active, normal_t,
+            R.vertex_type, R.vertex_owner, self.L0, vp_t if P else R.empty_vec, vb_t if B else R.empty_twist,
+            float(self.tolerance), float(self.collided_tolerance), float(ACTIVE_SET_PULLING),
+            hd._staging.empty("active_jn", C, wp.float64), repaired, changes])
+        return repaired, int(host(changes)[0])
+
+    def solve(self) -> None:
+        """Decide the active set by projected Gauss-Seidel on top of the current velocities,
+        then replay the exact normal solve and repair the set (drop pulling contacts, add
+        violated ones) until it holds; the velocities and the motion that moves the positions
+        become the final solve's."""
+        hd, R, cs, P, B, mu = self.handler, self.replay, self.contacts, self.P, self.B, self.mu
+        C, take, launch = cs.count, R.take, self.launch
+        with paused_tape():
+            dec = hd._velocities_of(*self.current())
+            hd._solve(dec, self.L0, self.inv_I)
+        # the set's rows as the taped solves read them (one copy while a tape records)
+        vertices, kinds = R.frozen(cs.vertices, C), R.frozen(cs.kind, C)
+        mobile = hd._staging.empty("mobile_rows", C, wp.int32)
+        active = take(C, wp.int32, zero=False, grad=False)
+        launch("r_initial_active", initial_active_kernel, C, [
+            cs.vertices, cs.weights, cs.normal_impulse, hd._mobile_vertex_w, mobile, active])
+        taped = active  # the set whose solve the tape holds (the first trial's)
+        tape = active_tape()
+        changes = hd._staging.empty("active_changes", 1, wp.int32)
+        self.collided_tolerance = (APPROACH_EPS * hd._sep_speed if C <= ACTIVE_SET_COLLIDED_MAX_CONTACTS
+                                   else self.tolerance)
+        args = (vertices, kinds, C)
+        for iteration in range(ACTIVE_SET_ITERATIONS):
+            share = hd._friction_share(active) if mu > 0 else None
+            # the first trial is recorded (usually it is the final one); repair trials stay off
+            # the tape (their O(n^2) matrices would be kept to the end)
+            with (contextlib.nullcontext() if iteration == 0 else paused_tape()):
+                solved = R.solve(self.rows, *args, active, self.L0, self.inv_I, self.vm_p, self.vm_b, share,
+                                 self.resting)
+            if iteration == 0:
+                recorded = solved
+            repaired, n_changes = self.repair(solved, active, mobile, changes)
+            if not n_changes:
+                break
+            if iteration == ACTIVE_SET_ITERATIONS - 1:
+                hd.unsettled_active_sets += 1
+                break  # the last trial's set stands, taped or not: one forward function
+            active = repaired
+            hd.active_set_repairs += 1
+        vp_d, vb_d, normal, moving = solved
+        if tape is not None and active is not taped and hd._flags_differ(taped, active, C):
+            # the replay of the final active set, recorded
+            share = hd._friction_share(active) if mu > 0 else None
+            vp_d, vb_d, normal, moving = R.solve(self.rows, *args, active, self.L0, self.inv_I, self.vm_p, self.vm_b,
+                                                 share, self.resting)
+        elif tape is not None:
+            # the repairs came back to the first trial's set: its recorded solve (the same
+            # values) is the one the tape continues from, not the last, unrecorded trial
+            vp_d, vb_d, normal, moving = recorded
+        if P:
+            self.vp, self.xp = vp_d, moving[0]
+        if B:
+            self.vb, self.xb = vb_d, moving[1]
+        launch("r_set_impulses", set_impulses_kernel, C, [
+            active, normal, cs.normals, cs.normal_impulse, cs.friction_impulse])
+
+    def proximity(self) -> None:
+        """Proximity contacts at the start of the substep, and their solve. Also the substep's
+        one broad-phase query while the rounds' motion stays near the predicted one."""
+        hd, sp = self.handler, self.state_pred
+        with paused_tape():  # decisions: off the tape
+            self.x0 = host(self.X0)
+            x1_pred = host(hd._pose("predicted", sp.particle_q, sp.body_q))[: hd.n_vertices + 1]
+            hd._cover(self.x0[:hd.n_vertices], x1_pred[:hd.n_vertices], self.delta)
+            found = hd._proximity_hits(self.x0, x1_pred, self.X0, self.delta)
+        if found:
+            self.add(self.geometry(self.X0, hd._inf_time_p, hd._inf_time_b), True, 0)  # no contact time yet
+            if self.contacts.count:
+                self.solve()
+
+    def grow_zones(self) -> bool:
+        """The fail-safe: the approaching hits join impact zones (membership decided on the
+        host), which move rigidly with their momentum (taped). False when no zone grew."""
+        hd, R, P, B = self.handler, self.replay, self.P, self.B
+        if self.zones is None:
+            self.zones = ImpactZones(P, B, hd.particle_inv_mass)
+        idx = hd._hits.host("vertices")[hd._hits.host("approaching") != 0]
+        if not self.zones.merge(hd.vertex_type[idx], hd.vertex_owner[idx]):
+            return False
+        m = hd.model
+        particle_zone, body_zone, n_zones = self.zones.labels()
+        self.vp, self.vb = R.zone_velocities(self.vp, self.vb, particle_zone, body_zone, n_zones, self.xq0,
+                                             self.bq0_w, m.body_mass if B else None, m.body_inertia if B else None)
+        self.zone_flags = hd._zone_flags(self.zones)
+        self.xp, self.xb = R.zone_moving(self.xp, self.xb, *self.zone_flags, self.vp, self.vb)
+        return True
+
+    def run(self) -> State | None:
+        """The substep's stages; the new State, or None when nothing touched."""
+        hd, R, P, B, sp = self.handler, self.replay, self.P, self.B, self.state_pred
+        # 1. proximity contacts at the start of the substep
+        self.proximity()
+        # 2-5. CCD rounds on the planned motion; the result is the last round's plan: every exit
+        # follows a plan with nothing changed after it
+        failsafe = False
+        for iteration in itertools.count():
+            X1p, BQ1, tp, tb = self.plan()
+            X1 = R.positions(X1p if P else None, BQ1 if B else None)
+            with paused_tape():  # decisions: off the tape
+                count = hd._ccd_hits(self.x0, host(X1), X1, 1)
+            if not count:
+                break
+            out = self.geometry(X1, tp, tb)
+            with paused_tape():
+                approaching = hd._approach(self.X0, X1, self.L0, out[:3], self.vm, self.current(), (tp, tb), self.h)
+            if not approaching:
+                break
+            if iteration >= hd.max_iterations:
+                failsafe = True
+                if not self.grow_zones():
+                    break
+                continue
+            hd.ccd_events += approaching
+            self.add(out, False, approaching)
+            self.solve()
+        if failsafe:
+            hd.failsafe_count += 1
+        if self.contacts.count == 0 and not failsafe:
+            return None
+        hd._note_contacts(ContactRecord(self.contacts, self.X0, X1, self.h, hd.vertex_type))
+        return State(
+            particle_q=X1p if P else sp.particle_q,
+            particle_qd=self.vp if P else sp.particle_qd,
+            body_q=BQ1 if B else sp.body_q,
+            body_qd=self.vb if B else sp.body_qd,
+        )
