@@ -79,7 +79,7 @@ def test_response_checker_and_recorder_share_one_mesh_numbering(tmp_path):
     x_checker = checker.positions(state)
     # the handler poses on the device (the replay's kernel), the checker on the host: the same
     # vertices in the same order, to rounding
-    x_handler = handler._pose("start", state.particle_q, state.body_q).numpy()[: handler.n_vertices]
+    x_handler = handler.detect.pose("start", state.particle_q, state.body_q).numpy()[: handler.n_vertices]
     np.testing.assert_allclose(x_handler, x_checker, rtol=0.0, atol=1e-14)
     np.testing.assert_array_equal(x_handler[: handler.shape_offset], x_checker[: handler.shape_offset])
     for mesh in (handler.mesh, recorder_mesh):

@@ -285,7 +285,7 @@ def test_float32_ccd_decisions_keep_rigid_toss_penetration_free():
     from sim.contact.response import ImpulseCollisionHandler
     from scenes.sim_common import build_model, ccd_options
 
-    narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args))._narrow
+    narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args)).detect.narrow
     assert narrow._float32 and narrow.settings.max_iterations == 8
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0

@@ -106,11 +106,11 @@ def test_scene_stops_a_substep_past_the_contact_limits(monkeypatch, limit):
     (step ~15) pass them: at their real values (8 hits per collision vertex, solve work 1e11)
     ``--dt 1 --integrator implicit`` stops within about 30 s instead of grinding for minutes."""
     import sim.contact.replay
-    import sim.contact.response
+    import sim.contact.detect
 
     if limit == "hits":
-        monkeypatch.setattr(sim.contact.response, "MAX_HITS_MIN", 10)
-        monkeypatch.setattr(sim.contact.response, "MAX_HITS_PER_VERTEX", 0)
+        monkeypatch.setattr(sim.contact.detect, "MAX_HITS_MIN", 10)
+        monkeypatch.setattr(sim.contact.detect, "MAX_HITS_PER_VERTEX", 0)
         pattern = r"step \d+: \d+ contacts in one collision round of a substep, more than the limit of 10 .*--substeps.*--dt"
     else:
         monkeypatch.setattr(sim.contact.replay, "MAX_SOLVE_WORK", 1e3)

@@ -73,7 +73,7 @@ from kernels.zones import (
     zone_select_kernel,
     zone_sums_kernel,
 )
-from kernels.contact_set import active_unknowns_kernel
+from kernels.active_set import active_unknowns_kernel
 from sim.contact.friction_split import FrictionSplit
 from sim.contact.tuning import (MAX_SOLVE_WORK, PUSH_OVERSHOOT, PUSH_REGULARIZATION, REGULARIZATION, SLIP_REVERSAL,
                                 STICKING_MAX_CONTACTS)

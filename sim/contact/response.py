@@ -78,34 +78,26 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from core.buffers import RecordedLaunches, Staging, copy_rows, host, zero
-from collision.ccd import ONES3, CandidateNarrowPhase
-from sim.contact.contacts import ContactLimitExceeded, Contacts, Hits
-from kernels.variants import check_settings as check_ccd_settings
-from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
-from sim.collision_mesh import CollisionMesh
-from sim.contact.record import NO_CONTACTS, ContactRecord
-from sim.contact.replay import ContactReplay
-from sim.contact.zones import ImpactZones
-from sim.contact.tuning import (SEPARATION_RATE, PROXIMITY_HYSTERESIS, DEFAULT_SEPARATION_RELATIVE,
-                                  SOLVER_ITERATIONS, SOLVER_TOLERANCE, TOUCHING_RELATIVE, APPROACH_EPS,
-                                  END_OF_SUBSTEP, PLANE_ROUNDING_SLACK, COVER_MARGIN, COVER_SLACK,
-                                  CCD_REACH_SLACK, CCD_REACH_MIN_CANDIDATES, COVER_AHEAD, COVER_AHEAD_LIMIT,
-                                  COVER_SCALES, COVER_SPARSE_CANDIDATES, COVER_DENSE_CANDIDATES,
-                                  DEVICE_SORT_MIN, ACTIVE_SET_ITERATIONS, ACTIVE_SET_COLLIDED_MAX_CONTACTS,
-                                  ACTIVE_SET_PULLING, MAX_HITS_PER_VERTEX, MAX_HITS_MIN)
-from core.tape import active_tape, paused_tape
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from kernels.contact_geometry import contact_geometry_kernel
+from core.buffers import RecordedLaunches, Staging, copy_rows, host, zero
+from core.tape import active_tape, paused_tape
+from kernels.active_set import (active_set_update_kernel, flags_differ_kernel, friction_share_count_kernel,
+                                friction_share_kernel, initial_active_kernel, owner_rows_finish_kernel,
+                                owner_rows_kernel, owner_rows_reset_kernel, owner_times_kernel,
+                                owner_times_reset_kernel, set_impulses_kernel)
 from kernels.decide import solve_contacts_kernel
 from kernels.integrate import planned_substep_kernel
-from kernels.pose import pose_positions_kernel, pose_substep_kernel
-from kernels.contact_set import (active_set_update_kernel, add_contacts_kernel, approach_kernel,
-                                 flags_differ_kernel, friction_share_count_kernel, friction_share_kernel,
-                                 gather_hits_kernel, hit_keys_kernel, initial_active_kernel, match_contacts_kernel,
-                                 owner_rows_finish_kernel, owner_rows_kernel, owner_rows_reset_kernel,
-                                 owner_times_kernel, owner_times_reset_kernel, plane_crossing_kernel,
-                                 plane_proximity_kernel, set_impulses_kernel, sort_keys_kernel)
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
+from kernels.variants import check_settings as check_ccd_settings
+from sim.collision_mesh import CollisionMesh
+from sim.contact.contacts import Contacts
+from sim.contact.detect import ContactDetection
+from sim.contact.record import NO_CONTACTS, ContactRecord
+from sim.contact.replay import ContactReplay
+from sim.contact.tuning import (ACTIVE_SET_COLLIDED_MAX_CONTACTS, ACTIVE_SET_ITERATIONS, ACTIVE_SET_PULLING,
+                                APPROACH_EPS, DEFAULT_SEPARATION_RELATIVE, SEPARATION_RATE, SOLVER_ITERATIONS,
+                                SOLVER_TOLERANCE, TOUCHING_RELATIVE)
+from sim.contact.zones import ImpactZones
 from sim.model import Model, State
 
 CCD_OPTIONS = ("precision", "tolerance_scale", "max_iterations", "tolerance")
@@ -162,7 +154,7 @@ class ImpulseCollisionHandler:
         max_derivative: the robust-division bound ``M`` of the replayed times of impact.
         ccd_options: the narrow phase's knobs that decide the CCD contacts, a dict of
             ``precision`` ("float64" / "float32"), ``tolerance_scale``, ``max_iterations`` and
-            ``tolerance`` (:class:`collision.ccd.CandidateNarrowPhase`); None: the float64
+            ``tolerance`` (:class:`collision.narrow_phase.CandidateNarrowPhase`); None: the float64
             kernels as written. The replay recomputes each contact's ``t*`` with the float64
             root solver (and its mollified derivative) either way.
 
@@ -200,53 +192,16 @@ class ImpulseCollisionHandler:
         self.shape_body = mesh.shape_body
         self.static_vertices = mesh.static_vertices
         self.n_vertices = mesh.vertex_count
-        self.max_hits = max(MAX_HITS_MIN, MAX_HITS_PER_VERTEX * (self.n_vertices + int(m.plane_count) * self.n_particles))
         self.faces, self.edges = mesh.faces, mesh.feature_edges
-        # broad-phase groups: the particles (self-collision only with "self_collision"), each
-        # body (never with itself), the static meshes (never with each other)
-        groups, self_collision, static = [], [], []
-        if self.n_particles:
-            groups.append(np.zeros(self.n_particles, dtype=np.int64))
-            self_collision.append("self_collision" in model.components)
-            static.append(False)
-        if self.n_shape:
-            groups.append(len(self_collision) + self.shape_body)
-            self_collision.extend([False] * m.body_count)
-            static.extend([False] * m.body_count)
-        if len(self.static_vertices):
-            groups.append(np.full(len(self.static_vertices), len(self_collision), dtype=np.int64))
-            self_collision.append(False)
-            static.append(True)
         # one dummy static vertex (index n_vertices, at the origin): the second side of
         # vertex-plane contacts
         self.vertex_type = np.append(mesh.vertex_type, VERTEX_STATIC).astype(np.int64)
         self.vertex_owner = np.append(mesh.vertex_owner, 0).astype(np.int64)
         self.planes = m.planes.numpy().reshape(-1, 4) if m.plane_count else np.zeros((0, 4))
-        # the vertices the vertex-plane tests cover (movable particles and the rigid surface
-        # vertices) and the planes' normals / offsets. The integrator's plane stage has already
-        # stopped the particles at the planes when the handler runs, but a mesh contact's
-        # impulse can push a particle back through (cloth pressed into the ground by a body):
-        # as rows of the same solve the plane holds it
-        particle_inv_mass = m.particle_inv_mass.numpy() if mesh.particle_count else np.zeros(0)
-        movable_particles = np.flatnonzero(particle_inv_mass > 0)
-        self._plane_vertex_ids = np.concatenate([movable_particles, np.arange(mesh.shape_offset, mesh.static_offset)])
-        self._plane_threshold = np.concatenate([np.full((len(movable_particles), 1), 1.0 - PLANE_ROUNDING_SLACK),
-                                                np.full((self.n_shape, 1), 1.0 + PROXIMITY_HYSTERESIS)])  # x delta
-        self._key_base = max(len(self.vertex_type), len(self.faces), len(self.edges), len(self.planes)) + 1
         self._staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self._no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
-        self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=model.device)  # an unread inertia array
-        self._cover_scale = 0  # index into COVER_SCALES
         self._launches = RecordedLaunches(model.device)  # and its replayed kernel launches
         self.last_sweeps = 0
-        self.broad_phase = None
-        if self.n_vertices and len(self.faces):
-            self.broad_phase = BroadPhase(
-                self.faces, self.edges, num_vertices=self.n_vertices,
-                groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
-                static=np.array(static, dtype=bool), device=model.device,
-            )
-            self._narrow = CandidateNarrowPhase(self.broad_phase, **self.ccd_options)
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
         # vertices an impulse can move: rigid ones and unpinned particles
         inv_mass = np.zeros(len(self.vertex_type))
@@ -273,88 +228,34 @@ class ImpulseCollisionHandler:
             m.body_inv_inertia if self.n_bodies else None,
             self.planes, m.friction, m.restitution, m.device, mesh.flat_edges, mesh.flat_opposites,
         )
-        # the Gauss-Seidel path's device decisions (kernels.contact_set): the contact set, one
-        # detection pass's hits, the plane tests' vertices, distances and hits, the counters
+        # the device contact set (kernels.contact_set), and the detection stage that fills it
         dev = model.device
-        self._contacts, self._hits = Contacts(dev), Hits(dev)
+        self._contacts = Contacts(dev)
+        self.detect = ContactDetection(model, mesh, self.planes, self.n_bodies, self._replay, self._contacts,
+                                       self._staging, self._launches, self.separation, self.max_derivative,
+                                       self.ccd_options, self.differentiable)
         self._records = weakref.WeakSet()  # the calls' contact records that still read the buffers
-        ids = self._plane_vertex_ids
-        self._plane_ids_w = wp.array(np.append(ids, 0).astype(np.int32), dtype=wp.int32, device=dev)
-        self._plane_threshold_w = wp.array(np.append(self._plane_threshold[:, 0], 1.0), dtype=wp.float64, device=dev)
-        rows = max(len(ids) * len(self.planes), 1)
-        self._plane_d0_w = wp.zeros(rows, dtype=wp.float64, device=dev)
-        self._plane_pairs_w = wp.zeros(rows, dtype=wp.vec2i, device=dev)
-        self._plane_time_w = wp.zeros(rows, dtype=wp.float64, device=dev)
-        self._plane_counter, self._kept_counter, self._approach_counter, self._repeated_counter = (
-            wp.zeros(1, dtype=wp.int32, device=dev) for _ in range(4))
         P, B = max(self.n_particles, 1), max(self.n_bodies, 1)
         self._particle_time_w = wp.zeros(P, dtype=wp.float64, device=dev)
         self._body_time_w = wp.zeros(B, dtype=wp.float64, device=dev)
-        # no contact time yet (inf) and no impact zone (read only)
-        self._inf_time_p = wp.array(np.full(P, np.inf), dtype=wp.float64, device=dev)
-        self._inf_time_b = wp.array(np.full(B, np.inf), dtype=wp.float64, device=dev)
+        # no impact zone (read only)
         self._no_zone_p = wp.zeros(P, dtype=wp.int32, device=dev)
         self._no_zone_b = wp.zeros(B, dtype=wp.int32, device=dev)
         # the result's arrays (the plan's ends and the velocities after the impulses: the model's
         # shapes, so the integrator copies them as they are)
         self._result = model.state()
-        self._no_merge = wp.zeros(1, dtype=wp.int32, device=dev)  # the merge decisions' stand-in (not written)
         self._mobile_vertex_w = wp.array(self._mobile_vertex.astype(np.int32), dtype=wp.int32, device=dev)
+
+    @property
+    def broad_phase(self) -> BroadPhase | None:
+        """The detection stage's broad phase (None when the model has no collidable surface)."""
+        return self.detect.broad_phase
 
     # ------------------------------------------------------------------------------------------
     # geometry
 
-    def _pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None) -> wp.array:
-        """World positions (V + 1, 3) [m] of the collidable vertices and the dummy vertex at the
-        origin for the device arrays ``particle_q`` (P,) and ``body_q`` (B,)
-        (:func:`kernels.pose.pose_positions_kernel`), in the handler's device buffer ``name``
-        (overwritten by the next pose into ``name``)."""
-        n, R = self.n_vertices + 1, self._replay
-        x = self._staging.empty("posed_" + name, n, wp.vec3d)  # not the substep pose's buffers
-        self._launches.launch(("pose", name), pose_positions_kernel, n, [
-            particle_q if self.n_particles else R.empty_vec, body_q if self.n_bodies else R.empty_pose,
-            R.vertex_type, R.vertex_owner, R.local, x])
-        return x
 
-    def _pose_substep(self, state_in: State, state_pred: State):
-        """:meth:`_pose` of ``state_in`` and of ``state_pred`` and the bodies' world inverse
-        inertia tensors at ``state_in`` (``R I^-1 R^T``), in one launch
-        (:func:`kernels.pose.pose_substep_kernel`).
 
-        Returns:
-            (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`_pose`'s), the
-            start positions' and lever arms' device arrays, the predicted positions on the host,
-            the inverse inertia device array); the predicted positions' device array is kept in
-            ``_x1_pred_w``.
-        """
-        n, R, B = self.n_vertices + 1, self._replay, self.n_bodies
-        empty = self._staging.empty
-        x0, lever0 = empty("x_start", n, wp.vec3d), empty("lever_start", n, wp.vec3d)
-        x1 = empty("x_predicted", n, wp.vec3d)
-        inv_inertia_w = empty("inv_inertia_w", max(B, 1), wp.mat33d)
-        P = self.n_particles
-        self._launches.launch("pose_substep", pose_substep_kernel, max(n, B), [
-            state_in.particle_q if P else R.empty_vec, state_in.body_q if B else R.empty_pose,
-            state_pred.particle_q if P else R.empty_vec, state_pred.body_q if B else R.empty_pose,
-            R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
-            n, B, x0, lever0, x1, inv_inertia_w])
-        self._x1_pred_w = x1
-        return host(x0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
-
-    def _cover(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float) -> None:
-        """The substep's broad-phase cover (:meth:`CandidateNarrowPhase.cover`) of the motion
-        ``x0 -> x1_pred`` (V, 3) at the current scale (:data:`COVER_SCALES`), which a fresh query
-        then moves a step towards its candidate budget."""
-        scale = COVER_SCALES[self._cover_scale]
-        queries = self._narrow.queries
-        self._narrow.cover(x0, x1_pred, COVER_MARGIN * scale * delta, COVER_SLACK * scale * delta, COVER_AHEAD,
-                           COVER_AHEAD_LIMIT * scale * delta)
-        if self._narrow.queries != queries:
-            found = self._narrow.covered_candidates()
-            if found < COVER_SPARSE_CANDIDATES:
-                self._cover_scale = min(self._cover_scale + 1, len(COVER_SCALES) - 1)
-            elif found > COVER_DENSE_CANDIDATES:
-                self._cover_scale = max(self._cover_scale - 1, 0)
 
     # ------------------------------------------------------------------------------------------
 
@@ -429,6 +330,8 @@ class ImpulseCollisionHandler:
         # change after it (contact_geometry_kernel)
         self._v_start = (state_in.particle_qd if self.n_particles else R.empty_vec,
                          state_in.body_qd if self.n_bodies else R.empty_twist)
+        self._sep_speed = self.separation / h
+        self.detect.begin(self._v_start, self._sep_speed)
         # the buffers of earlier calls are about to be reused: the records still kept (saved
         # statistics) take host copies of what they read
         for record in list(self._records):
@@ -440,9 +343,8 @@ class ImpulseCollisionHandler:
         R = self._replay
         # the vertices at the start (with the rigid ones' lever arms) and the predicted end;
         # host views for the broad-phase cover's box tests (per vertex, not per contact)
-        x0, x0_w, lever0_w, x1_pred, inv_inertia_w = self._pose_substep(state_in, state_pred)
+        x0, x0_w, lever0_w, x1_pred, inv_inertia_w = self.detect.pose_substep(state_in, state_pred)
         delta = self.separation
-        self._sep_speed = delta / h
         cs = self._contacts
         cs.clear()
         vm = (state_pred.particle_qd if P else R.empty_vec, state_pred.body_qd if B else R.empty_twist)
@@ -451,10 +353,10 @@ class ImpulseCollisionHandler:
         zone_flags = None  # their members per particle / body (device), for the contact times
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
-        self._cover(x0[:-1], x1_pred[:-1], delta)
+        self.detect.cover(x0[:-1], x1_pred[:-1], delta)
         # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
         # and solved together
-        if self._proximity(x0, x1_pred, x0_w, lever0_w, vm, h, delta):
+        if self.detect.proximity(x0, x1_pred, x0_w, lever0_w, vm, h, delta):
             vel = self._velocities(state_pred)
             self._solve(vel, lever0_w, inv_inertia_w)
 
@@ -468,8 +370,8 @@ class ImpulseCollisionHandler:
                 planned = self._plan(state_in, state_pred, vel, zone_flags, h)
                 x1, x1_w, times = planned[2], planned[3], planned[4]
             else:  # nothing changed the prediction
-                x1, x1_w, times = x1_pred, self._x1_pred_w, None
-            approaching = self._ccd_round(x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                x1, x1_w, times = x1_pred, self.detect.x1_pred_w, None
+            approaching = self.detect.ccd_round(x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h)
             if not approaching:
                 break
             if iteration >= self.max_iterations:
@@ -479,7 +381,7 @@ class ImpulseCollisionHandler:
                 failsafe = True
                 if zones is None:
                     zones = ImpactZones(P, B, self.particle_inv_mass)
-                idx = self._hits.host("vertices")[self._hits.host("approaching") != 0]
+                idx = self.detect.hits.host("vertices")[self.detect.hits.host("approaching") != 0]
                 if not zones.merge(self.vertex_type[idx], self.vertex_owner[idx]):
                     break  # only contacts inside rigidly moving zones remain (rounding)
                 vel = vel if vel is not None else self._velocities(state_pred)
@@ -487,7 +389,7 @@ class ImpulseCollisionHandler:
                 continue
             self.ccd_events += approaching
             vel = vel if vel is not None else self._velocities(state_pred)
-            self._add_hits(False, approaching)
+            self.detect.add_hits(False, approaching)
             self._solve(vel, lever0_w, inv_inertia_w)
         if failsafe:
             self.failsafe_count += 1
@@ -519,171 +421,14 @@ class ImpulseCollisionHandler:
         bv = copy_rows(self._result.body_qd, body_qd, B) if B else R.empty_twist
         return vp, bv
 
-    def _sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> int:
-        """Puts the narrow phase's ``mesh_count`` hits (:attr:`CandidateNarrowPhase.hits`) and the
-        ``plane_count`` vertex-plane ones into :attr:`_hits` in ascending pair order (the
-        order of the contacts is then the same whatever the broad phase's candidate order or the
-        device's thread schedule); ``max_distance >= 0`` drops mesh pairs not nearer than it
-        (the proximity pass), ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s.
-        Returns the number of hits kept."""
-        H, nb, launch = self._hits, self._narrow.hits, self._launches.launch
-        total = mesh_count + plane_count
-        H.reserve(total)
-        zero(self._kept_counter)
-        launch("hit_keys", hit_keys_kernel, total, [
-            mesh_count, nb["kind"], nb["pairs"], nb["offset"], float(max_distance), self._plane_pairs_w,
-            self._key_base, H.keys, H.order, self._kept_counter])
-        kept = int(host(self._kept_counter)[0])
-        if kept > self.max_hits:
-            raise ContactLimitExceeded(
-                f"{kept} contacts in one collision round of a substep, more than the limit of {self.max_hits} "
-                f"({MAX_HITS_PER_VERTEX} per collision vertex): the substep is far too long for the motion")
-        if self._hits.device.is_cpu or total <= DEVICE_SORT_MIN:
-            launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
-        else:
-            wp.utils.radix_sort_pairs(H.keys, H.order, total)
-        if kept:
-            zero(self._repeated_counter)
-            launch("gather", gather_hits_kernel, kept, [
-                H.keys, H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
-                self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
-                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
-            if host(self._repeated_counter)[0]:
-                raise RuntimeError("collision detection returned a primitive pair twice in one pass "
-                                   "(the broad phase's candidates must be distinct pairs)")
-        H.count = kept
-        return kept
 
-    def _hit_geometry(self, x0_w, x1_w, lever_w, vm, vel, times, h: float) -> None:
-        """Times [s], weights, normals and targets of :attr:`_hits` on the paths ``x0_w -> x1_w``
-        (:func:`kernels.contact_geometry.contact_geometry_kernel`, the replay's definition), with the
-        velocities ``v-`` (``vm``) before each owner's contact time (``times``: particle and body
-        device arrays; None: no contact yet) and ``vel`` after it (None: still ``v-``)."""
-        H, R = self._hits, self._replay
-        vc = vm if vel is None else vel
-        tp, tb = times if times is not None else (self._inf_time_p, self._inf_time_b)
-        self._launches.launch("hit_geometry", contact_geometry_kernel, H.count, [
-            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
-            H.plane, R.planes, *self._v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
-            float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
-            float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
-            self._staging.empty("hit_push", max(H.count, 1), wp.float64)])
 
-    def _add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
-        """Grows the contact set by :attr:`_hits` (``all_new``: every hit, into the empty set;
-        else the ``approaching`` ones, :func:`kernels.contact_set.add_contacts_kernel`) with the
-        hits' geometry (``geometry``: (toi, weights, normals, targets) device arrays; default
-        the hits' own) and, with ``merge`` ((hit, keep toi, keep target) int32 arrays of the
-        grown set's rows), the decisions the taped replay's merge repeats."""
-        cs, H = self._contacts, self._hits
-        toi, w, n, target = geometry[:4] if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
-        cs.reserve(cs.count + (H.count if all_new else approaching))
-        record = merge is not None
-        merge = merge if record else (self._no_merge,) * 3
-        self._launches.launch("add", add_contacts_kernel, 1, [
-            H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
-            self._replay.vertex_type, cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
-            cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
-        cs.count = int(host(cs.counter)[0])
 
-    def _plane_hits(self, x_w, delta: float | None) -> int:
-        """Vertex-plane hits into the plane buffers: with ``delta``, the proximity pairs at the
-        start positions ``x_w`` (which also keeps their plane distances); else the crossings of
-        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number."""
-        n = len(self._plane_vertex_ids)
-        if not (n and len(self.planes)):
-            return 0
-        zero(self._plane_counter)
-        if delta is not None:
-            self._launches.launch("plane_proximity", plane_proximity_kernel, n, [
-                x_w, self._plane_ids_w, self._plane_threshold_w, self._replay.planes, len(self.planes), float(delta),
-                self._plane_d0_w, self._plane_counter, self._plane_pairs_w])
-        else:
-            self._launches.launch("plane_crossing", plane_crossing_kernel, n, [
-                x_w, self._plane_ids_w, self._replay.planes, len(self.planes), self._plane_d0_w,
-                self._plane_counter, self._plane_pairs_w, self._plane_time_w])
-        return int(host(self._plane_counter)[0])
 
-    def _proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
-        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
-        device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
-        closest points are nearer than ``delta`` [m] (up to :data:`PROXIMITY_HYSTERESIS` beyond
-        it), then movable vertices nearer than ``delta`` to a plane (rigid ones up to the same
-        band), with the start geometry (:meth:`_hit_geometry` at ``t* = 0``: the offset's
-        direction, or the face's normal over a face, or for touching pairs as
-        :data:`TOUCHING_RELATIVE` says; target and push as
-        :func:`kernels.contact_geometry.contact_geometry_kernel` says).
 
-        The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
-        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
-        3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns the
-        number of contacts."""
-        if not self._proximity_hits(x0, x1_pred, x0_w, delta):
-            return 0
-        self._hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
-        self._add_hits(True, 0)
-        return self._contacts.count
 
-    def _proximity_hits(self, x0, x1_pred, x0_w, delta: float) -> int:
-        """:meth:`_proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
-        delta`` at the start into :attr:`_hits` (sorted); returns their number."""
-        n = self.n_vertices
-        radius = None
-        if self._narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
-            step = x1_pred[:n] - x0[:n]
-            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
-            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
-                radius = None
-        reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
-        mesh = self._narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius)  # slack: the exact test follows
-        planes = self._plane_hits(x0_w, delta)
-        return self._sorted_hits(mesh, planes, 0, reach) if mesh + planes else 0
 
-    def _ccd_round(self, x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
-        """One CCD round of the straight paths ``x0 -> x1`` (V + 1, 3) (device arrays ``x0_w``,
-        ``x1_w``; :meth:`_ccd_hits`), the hits' geometry at their detected times and whether they
-        approach (:meth:`_approach`). Returns the number of approaching hits."""
-        if not self._ccd_hits(x0, x1, x1_w, 2):
-            return 0
-        self._hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
-        H = self._hits
-        return self._approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h)
 
-    def _ccd_hits(self, x0, x1, x1_w, time_mode: int) -> int:
-        """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
-        vertex-face, edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a
-        movable vertex ends behind a plane, moving inwards) into :attr:`_hits` in pair order
-        (``time_mode``: :func:`kernels.contact_set.gather_hits_kernel`'s), each matched to its row
-        in the contact set. Returns their number."""
-        n, H, cs = self.n_vertices, self._hits, self._contacts
-        mesh = self._narrow.ccd_count(x0[:n], x1[:n], 0.0)
-        planes = self._plane_hits(x1_w, None)
-        if not mesh + planes:
-            return 0
-        count = self._sorted_hits(mesh, planes, time_mode)
-        if cs.count:
-            self._launches.launch("match", match_contacts_kernel, cs.count,
-                                  [cs.kind, cs.pair, self._key_base, H.keys, count, H.row])
-        return count
-
-    def _approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float) -> int:
-        """Whether each of :attr:`_hits` approaches (``geometry``: its (toi [s], weights, normals)
-        device arrays; :func:`kernels.contact_set.approach_kernel`, into the hits'
-        ``approaching``), with the velocities ``v-`` (``vm``) before each owner's contact time
-        (``times``; None: no contact yet) and ``vel`` after it. Returns how many approach."""
-        H, R = self._hits, self._replay
-        vc = vm if vel is None else vel
-        tp, tb = times if times is not None else (self._inf_time_p, self._inf_time_b)
-        zero(self._approach_counter)
-        self._launches.launch("approach", approach_kernel, H.count, [
-            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
-            self._contacts.toi, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self._sep_speed),
-            # a contact at the very end leaves once it no longer approaches (the replay pushes
-            # the separation at the position level) or, in the Gauss-Seidel response, once it
-            # leaves at its separation speed
-            0.0 if self.differentiable else float(self._sep_speed),
-            float(APPROACH_EPS), float(END_OF_SUBSTEP), self._approach_counter, H.approaching])
-        return int(host(self._approach_counter)[0])
 
     def _solve(self, vel, lever: wp.array, inv_inertia_w: wp.array) -> None:
         """Projected Gauss-Seidel on the contact set (:func:`kernels.decide.solve_contacts_kernel`):
@@ -710,7 +455,7 @@ class ImpulseCollisionHandler:
 
     def _plan(self, state_in: State, state_pred: State, vel, zone_flags, h: float):
         """End positions of the substep ``h`` [s] for the contact set's earliest contact time per
-        particle / body (:func:`kernels.contact_set.owner_times_kernel`; 0 for the members of
+        particle / body (:func:`kernels.active_set.owner_times_kernel`; 0 for the members of
         impact zones, ``zone_flags`` (P,), (B,) int32 device arrays or None) and the velocities
         after the impulses ``vel``: the replay's time-of-impact integration
         (:func:`kernels.integrate.time_of_impact_position`, ``time_of_impact_pose``), then the
@@ -737,14 +482,14 @@ class ImpulseCollisionHandler:
         launch("plan", planned_substep_kernel, P + B + (0 if B else n), [
             *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
         if B:
-            x1 = self._pose("planned", x1p if P else None, bq1)
+            x1 = self.detect.pose("planned", x1p if P else None, bq1)
         return x1p, bq1, host(x1)[:n], x1, (tp, tb)
 
     def _owner_times(self, particle_time: wp.array, body_time: wp.array, zone_flags) -> None:
         """Each particle's / body's earliest contact time [s] in the contact set into
         ``particle_time`` (P,) / ``body_time`` (B,): inf without one, 0 for the members of impact
         zones (``zone_flags``: (P,), (B,) int32 device arrays), which move rigidly over the whole
-        substep (:func:`kernels.contact_set.owner_times_kernel`)."""
+        substep (:func:`kernels.active_set.owner_times_kernel`)."""
         cs, R, P = self._contacts, self._replay, self.n_particles
         self._launches.launch("owner_reset", owner_times_reset_kernel, P + self.n_bodies,
                               [P, *zone_flags, particle_time, body_time])
@@ -841,7 +586,6 @@ class ReplayedSubstep:
         self.vm = (self.vm_p if P else R.empty_vec, self.vm_b if B else R.empty_twist)
         self.X0, self.L0, self.inv_I = R.pose_start(self.xq0, self.bq0_w)
         self.delta = hd.separation
-        hd._sep_speed = self.delta / h
         self.mu = float(hd.model.friction)
         self.contacts = hd._contacts
         self.contacts.clear()
@@ -893,7 +637,7 @@ class ReplayedSubstep:
     def geometry(self, X1, tp, tb):
         """The taped geometry (time, normal, weights, targets) of the detection pass's hits on
         the motion from the start to ``X1`` (:meth:`sim.contact.replay.ContactReplay.geometry`)."""
-        hd, H = self.handler, self.handler._hits
+        hd, H = self.handler, self.handler.detect.hits
         rows = {"vertices": H.vertices, "kind": H.kind, "source": H.source, "detected": H.detected, "plane": H.plane}
         return self.replay.geometry(self.X0, X1, self.L0, rows, H.count, *hd._v_start, self.vm_p, self.vp, self.vm_b,
                                     self.vb, tp, tb, self.h, self.delta, SEPARATION_RATE, TOUCHING_RELATIVE,
@@ -904,16 +648,16 @@ class ReplayedSubstep:
         """Adds the pass's hits (all, or the ``approaching`` ones) to the contact set and merges
         their taped geometry ``out`` into the set's rows."""
         hd, R, cs = self.handler, self.replay, self.contacts
-        take, c = R.take, cs.count + (hd._hits.count if all_new else approaching)
+        take, c = R.take, cs.count + (hd.detect.hits.count if all_new else approaching)
         merge = (take(c, wp.int32, zero=False, grad=False), take(c, wp.int32, zero=False, grad=False),
                  take(c, wp.int32, zero=False, grad=False))
-        hd._add_hits(all_new, approaching, out, merge)
+        hd.detect.add_hits(all_new, approaching, out, merge)
         if cs.count:  # touching pairs with no defined normal join no set: it may stay empty
             self.rows = R.merge(self.rows, (out[0], out[3], out[1], out[2], out[4]), *merge, cs.count)
 
     def repair(self, solved, active, mobile, changes):
         """The repaired set after the trial ``solved`` of ``active`` and how many contacts it
-        changes (:func:`kernels.contact_set.active_set_update_kernel`)."""
+        changes (:func:`kernels.active_set.active_set_update_kernel`)."""
         hd, R, cs, P, B = self.handler, self.replay, self.contacts, self.P, self.B
         C = cs.count
         vp_t, vb_t, normal_t = solved[:3]
@@ -987,11 +731,11 @@ class ReplayedSubstep:
         hd, sp = self.handler, self.state_pred
         with paused_tape():  # decisions: off the tape
             self.x0 = host(self.X0)
-            x1_pred = host(hd._pose("predicted", sp.particle_q, sp.body_q))[: hd.n_vertices + 1]
-            hd._cover(self.x0[:hd.n_vertices], x1_pred[:hd.n_vertices], self.delta)
-            found = hd._proximity_hits(self.x0, x1_pred, self.X0, self.delta)
+            x1_pred = host(hd.detect.pose("predicted", sp.particle_q, sp.body_q))[: hd.n_vertices + 1]
+            hd.detect.cover(self.x0[:hd.n_vertices], x1_pred[:hd.n_vertices], self.delta)
+            found = hd.detect.proximity_hits(self.x0, x1_pred, self.X0, self.delta)
         if found:
-            self.add(self.geometry(self.X0, hd._inf_time_p, hd._inf_time_b), True, 0)  # no contact time yet
+            self.add(self.geometry(self.X0, hd.detect.inf_time_p, hd.detect.inf_time_b), True, 0)  # no contact time yet
             if self.contacts.count:
                 self.solve()
 
@@ -1001,7 +745,7 @@ class ReplayedSubstep:
         hd, R, P, B = self.handler, self.replay, self.P, self.B
         if self.zones is None:
             self.zones = ImpactZones(P, B, hd.particle_inv_mass)
-        idx = hd._hits.host("vertices")[hd._hits.host("approaching") != 0]
+        idx = hd.detect.hits.host("vertices")[hd.detect.hits.host("approaching") != 0]
         if not self.zones.merge(hd.vertex_type[idx], hd.vertex_owner[idx]):
             return False
         m = hd.model
@@ -1024,12 +768,12 @@ class ReplayedSubstep:
             X1p, BQ1, tp, tb = self.plan()
             X1 = R.positions(X1p if P else None, BQ1 if B else None)
             with paused_tape():  # decisions: off the tape
-                count = hd._ccd_hits(self.x0, host(X1), X1, 1)
+                count = hd.detect.ccd_hits(self.x0, host(X1), X1, 1)
             if not count:
                 break
             out = self.geometry(X1, tp, tb)
             with paused_tape():
-                approaching = hd._approach(self.X0, X1, self.L0, out[:3], self.vm, self.current(), (tp, tb), self.h)
+                approaching = hd.detect.approach(self.X0, X1, self.L0, out[:3], self.vm, self.current(), (tp, tb), self.h)
             if not approaching:
                 break
             if iteration >= hd.max_iterations:

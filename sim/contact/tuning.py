@@ -54,7 +54,7 @@ COVER_MARGIN = 4.0
 """Margin of the substep's one broad-phase query, in separations ``delta``: the proximity pass
 and every CCD round whose planned end positions stay within ``0.45 COVER_MARGIN delta`` of the
 covered boxes (the predicted motion continued, :data:`COVER_AHEAD`) reuse its candidates
-(:class:`collision.ccd.CandidateNarrowPhase`); a round that moves further queries afresh."""
+(:class:`collision.narrow_phase.CandidateNarrowPhase`); a round that moves further queries afresh."""
 
 COVER_SLACK = 1.0
 """A substep keeps an earlier substep's broad-phase query (instead of a new one) while its start
