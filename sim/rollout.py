@@ -322,7 +322,7 @@ class _Runner:
             self.stats["untaped_substeps"] = self.handler.untaped_substeps
             self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
             if self.handler.differentiable:
-                self.stats["largest_system"] = self.handler._replay.largest_system
+                self.stats["largest_system"] = self.handler.replay.largest_system
         return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
 
     def _forward_steps(self, start: State, record: list, requires_grad: bool) -> None:

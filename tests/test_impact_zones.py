@@ -116,7 +116,7 @@ def _host(handler, zones, state):
 def _warp(handler, zones, state, particle_q=None, particle_qd=None, body_q=None, body_qd=None):
     pz, bz, n = zones.labels()
     m = handler.model
-    return handler._replay.zone_velocities(
+    return handler.replay.zone_velocities(
         particle_qd if particle_qd is not None else state.particle_qd,
         body_qd if body_qd is not None else state.body_qd, pz, bz, n,
         particle_q if particle_q is not None else state.particle_q,

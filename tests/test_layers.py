@@ -145,3 +145,68 @@ def test_a_wrong_warp_version_fails_with_a_clear_message(monkeypatch):
     monkeypatch.setattr(wp, "__version__", "0.0.1")
     with pytest.raises(RuntimeError, match=r"written for warp-lang .* but 0\.0\.1 is installed.*constraints\.txt"):
         check_warp_version()
+
+
+DUPLICATE_LINES = 12
+"""Longest run of identical code lines (comments, docstrings, imports and blank lines aside) two
+places may share without a reason written beside them (``# duplicate: why``)."""
+
+LONG_FILE_LINES = 600
+ONE_IDEA = {
+    "kernels/roots.py": "the robust root solver of the quadratic and the cubic with its mollified adjoint",
+    "sim/contact/replay.py": "the taped replay of the collision response (ContactReplay), one launch sequence",
+    "sim/builder.py": "ModelBuilder, one adder per kind of object and finalize()",
+    "benchmarks/physics.py": "the physics validation suite: one check per classic closed form",
+    "benchmarks/implicit_accuracy.py": "one benchmark: the implicit integrator against converged references",
+}
+"""Files longer than :data:`LONG_FILE_LINES` that hold one idea, and the idea."""
+
+
+def _code_lines(path: str) -> list[tuple[int, str]]:
+    """(line number, stripped text) of the lines of ``path`` that are code: docstrings, imports,
+    comments and blank lines left out."""
+    text = open(path).read()
+    skip = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            skip.update(range(node.lineno, node.end_lineno + 1))
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            skip.update(range(node.lineno, node.end_lineno + 1))
+    out = []
+    for number, line in enumerate(text.splitlines(), 1):
+        stripped = line.strip()
+        if number in skip or not stripped or stripped.startswith("#"):
+            continue
+        out.append((number, stripped))
+    return out
+
+
+def test_no_block_of_code_is_duplicated():
+    lines = {name: _code_lines(path) for name, path in MODULES.items()}
+    seen: dict[tuple, tuple[str, int]] = {}
+    duplicates = set()
+    for name, rows in sorted(lines.items()):
+        for k in range(len(rows) - DUPLICATE_LINES + 1):
+            window = tuple(text for _, text in rows[k:k + DUPLICATE_LINES])
+            first = seen.setdefault(window, (name, k))
+            if first != (name, k):
+                other, j = first
+                span = [number for number, _ in lines[other][j:j + DUPLICATE_LINES]]
+                reason = any("# duplicate:" in line for line in
+                             open(MODULES[other]).read().splitlines()[span[0] - 1:span[-1]])
+                if not reason:
+                    duplicates.add(f"{MODULES[name]}:{rows[k][0]} repeats {MODULES[other]}:{span[0]}")
+    assert not duplicates, f"blocks of {DUPLICATE_LINES}+ identical code lines:\n" + "\n".join(sorted(duplicates))
+
+
+def test_no_file_is_long_unless_it_holds_one_idea():
+    long = []
+    for name, path in MODULES.items():
+        rel = os.path.relpath(path, REPO)
+        n = sum(1 for _ in open(path))
+        if n > LONG_FILE_LINES and rel not in ONE_IDEA:
+            long.append(f"{rel}: {n} lines")
+    assert not long, f"files over {LONG_FILE_LINES} lines (split them, or name their one idea in ONE_IDEA):\n" + \
+        "\n".join(long)
+    for rel in ONE_IDEA:
+        assert os.path.exists(os.path.join(REPO, rel)), f"ONE_IDEA names a missing file {rel}"
