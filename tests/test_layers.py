@@ -210,3 +210,19 @@ def test_no_file_is_long_unless_it_holds_one_idea():
         "\n".join(long)
     for rel in ONE_IDEA:
         assert os.path.exists(os.path.join(REPO, rel)), f"ONE_IDEA names a missing file {rel}"
+
+
+def test_the_architecture_document_names_files_that_exist():
+    """docs/architecture.md describes this tree: every file or folder it names exists, and every
+    package of the layout has its row."""
+    text = open(os.path.join(REPO, "docs", "architecture.md")).read()
+    paths = set(re.findall(r"`((?:kernels|core|collision|sim|scenes|benchmarks|tests)/[\w/.]*)`", text))
+    folders = {"kernels", "core", "collision", "sim", "scenes", "benchmarks"}
+    # bare file names in the kernels table belong to kernels/
+    in_kernels = text[text.index("## Kernels by idea"):text.index("## One substep")]
+    paths |= {f"kernels/{name}" for name in re.findall(r"`(\w+\.py)`", in_kernels)}
+    missing = sorted(p for p in paths if not os.path.exists(os.path.join(REPO, p)))
+    assert not missing, f"docs/architecture.md names files that do not exist: {missing}"
+    for folder in folders:
+        assert f"`{folder}/`" in text, f"docs/architecture.md has no row for {folder}/"
+    assert "docs/architecture.md" in open(os.path.join(REPO, "README.md")).read()
