@@ -8,7 +8,7 @@ import numpy as np
 import warp as wp
 
 from collision.ccd import ONES3, as_float32, ccd_kernels, is_float32
-from core.buffers import RecordedLaunches, host, read_only, upload, zero
+from core.buffers import RecordedLaunches, grown_capacity, host, read_only, upload, zero
 from core.device import init_warp
 from kernels import ccd as _k
 from kernels import variants as _variants
@@ -179,7 +179,7 @@ class CandidateNarrowPhase:
 
     def _reserve(self, n: int) -> None:
         if self._pairs.shape[0] < n:
-            n = max(n, 2 * self._pairs.shape[0], 64)
+            n = grown_capacity(n, self._pairs.shape[0], 64)
             dev = self.device
             self._pairs = wp.empty(n, dtype=wp.vec2i, device=dev)
             self._kind = wp.empty(n, dtype=wp.int32, device=dev)

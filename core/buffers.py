@@ -44,6 +44,13 @@ def upload(dst: wp.array, src: np.ndarray) -> wp.array:
     return dst
 
 
+def grown_capacity(rows: int, current: int, minimum: int = 16) -> int:
+    """The one growth policy of the reused device buffers (:class:`Staging`, the contact set's
+    rows, the narrow and broad phases' outputs): at least ``rows``, at least twice the current
+    capacity (n appends cost O(n) copies in all), at least ``minimum``."""
+    return max(int(rows), 2 * int(current), int(minimum))
+
+
 def rows(a, tail: tuple, dtype=np.float64) -> np.ndarray:
     """``a`` (a Warp array, a tensor, array-like or None) as a numpy array of rows of shape
     ``tail``: (n, *tail) of ``dtype``; None gives zero rows."""
@@ -85,7 +92,7 @@ class Staging:
     def empty(self, name: str, rows: int, dtype) -> wp.array:
         a = self._arrays.get(name)
         if a is None or a.shape[0] < max(rows, 1) or a.dtype != dtype:
-            size = max(rows, 2 * (a.shape[0] if a is not None else 0), 16)
+            size = grown_capacity(rows, a.shape[0] if a is not None else 0)
             a = wp.zeros(size, dtype=dtype, device=self.device)
             self._arrays[name] = a
         return a

@@ -384,7 +384,7 @@ def query_coefficients(m: mat83d) -> wp.vec4d:
     return coplanarity_cubic(row(m, 0), row(m, 1), row(m, 2), row(m, 3), row(m, 4), row(m, 5), row(m, 6), row(m, 7))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def ccd_time_of_impact_kernel(
     queries: wp.array(dtype=mat83d),
     source: wp.array(dtype=wp.int32),

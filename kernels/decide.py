@@ -9,7 +9,7 @@ from kernels.ccd import box_farther_than, farther_than, filter_rounding, pair_ve
 from kernels.ccd_common import max_abs_vec3
 from kernels.contact_geometry import pair_weights
 from kernels.edge_edge import segment_segment_offset
-from kernels.friction import SLIP_KEEP, SLIP_START, SLIP_STICK, beyond_cone, stops_sliding
+from kernels.friction import SLIP_KEEP, SLIP_START, SLIP_STICK, beyond_cone, coulomb_friction, stops_sliding
 from kernels.point_triangle import point_triangle_offset
 from kernels.response import relative_velocity
 
@@ -270,12 +270,10 @@ def solve_contacts_kernel(
             jn_old = normal_impulse[c]
             jn_new = wp.max(jn_old + (targets[c] - vn) / k_eff, zero)
             jt_old = friction_impulse[c]
-            jt_new = jt_old - (vrel - vn * n) / k_eff
-            limit = friction * jn_new
-            norm = wp.length(jt_new)
-            if norm > limit:
-                if norm > zero:
-                    jt_new = jt_new * (limit / norm)
+            # the accumulated friction impulse, projected on the cone (Coulomb's law against
+            # its own direction)
+            jt_stop = jt_old - (vrel - vn * n) / k_eff
+            jt_new = coulomb_friction(jt_stop, -jt_stop, friction * jn_new)
             impulse = (jn_new - jn_old) * n + (jt_new - jt_old)
             normal_impulse[c] = jn_new
             friction_impulse[c] = jt_new

@@ -277,6 +277,20 @@ def beyond_cone(j: wp.vec3d, n: wp.vec3d, friction: wp.float64) -> bool:
     return wp.length(j - jn * n) > friction * jn
 
 
+@wp.func
+def coulomb_friction(stop: wp.vec3d, slip: wp.vec3d, limit: wp.float64) -> wp.vec3d:
+    """Coulomb's law, the one definition every response uses: the friction impulse (or velocity
+    change) of a contact whose sticking impulse would be ``stop``. Inside the cone
+    ``|stop| <= limit`` (``limit = mu j_n``) the contact sticks and gets ``stop``; outside it
+    slides and gets ``limit`` against its ``slip`` direction (zero for a zero ``slip``)."""
+    if not (wp.length(stop) > limit):  # a NaN stays a NaN (the divergence guard sees it)
+        return stop
+    length = wp.length(slip)
+    if length > wp.float64(0.0):
+        return (-limit / length) * slip
+    return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
 SLIP_STICK = wp.constant(0)
 
 
@@ -378,12 +392,7 @@ def friction_impulses_kernel(
             x1 = (a22 * b1 - a12 * b2) / det
             x2 = (a11 * b2 - a12 * b1) / det
             stop = -share[c] * (x1 * t1 + x2 * t2)
-            limit = friction * jn
-            if wp.length(stop) <= limit:
-                impulses[c] = stop
-            else:
-                # Coulomb: sliding friction opposes the sliding velocity (for an anisotropic K
-                # the stopping impulse does not, and its projection on the cone would brake a
-                # sliding body by less than mu j_n)
-                vt = b1 * t1 + b2 * t2  # the slip the stick test saw (non-zero: j_s is not)
-                impulses[c] = (-limit / wp.length(vt)) * vt
+            # sliding friction opposes the sliding velocity (for an anisotropic K the stopping
+            # impulse does not, and its projection on the cone would brake a sliding body by
+            # less than mu j_n)
+            impulses[c] = coulomb_friction(stop, b1 * t1 + b2 * t2, friction * jn)

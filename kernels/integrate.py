@@ -47,6 +47,7 @@ the arrays it read), so a ``wp.Tape`` over a rollout can replay the kernels back
 
 import warp as wp
 
+from kernels.friction import coulomb_friction
 from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, body_point
 
 f64 = wp.float64
@@ -142,18 +143,19 @@ def principal_axes_grad(I: wp.mat33d, adj_Q: wp.mat33d, adj_d: wp.vec3d):
 
 
 @wp.func
-def casimir_rotation(L: wp.vec3d, s: wp.float64):
-    """Unit quaternion of the rotation by the angle ``s |L|`` about ``L`` (``exp(s [L]x)``): the
-    flow of ``|L|^2 / 2`` for the time ``s`` in the body frame. Smooth at ``L = 0`` (a series for
-    angles below 1e-6, truncation ~1e-27), so the tape never differentiates ``sqrt(0)``."""
-    th2 = s * s * wp.dot(L, L)
+def exact_rotation(w: wp.vec3d, s: wp.float64):
+    """Unit quaternion of the rotation by the angle ``s |w|`` about ``w`` (``exp(s [w]x)``): the
+    one quaternion update of the bodies (free flight, the time-of-impact turns, the push). Smooth
+    at ``w = 0`` (a series for angles below 1e-6, truncation ~1e-27), so the tape never
+    differentiates ``sqrt(0)``."""
+    th2 = s * s * wp.dot(w, w)
     a = f64(0.5) * s * (f64(1.0) - th2 / f64(24.0))  # s sin(th/2) / th
     c = f64(1.0) - th2 / f64(8.0)  # cos(th/2)
     if th2 > f64(1.0e-12):
         th = wp.sqrt(th2)
         a = s * wp.sin(f64(0.5) * th) / th
         c = wp.cos(f64(0.5) * th)
-    return wp.quatd(L[0] * a, L[1] * a, L[2] * a, c)
+    return wp.quatd(w[0] * a, w[1] * a, w[2] * a, c)
 
 
 @wp.func
@@ -162,7 +164,7 @@ def axis_flow(L: wp.vec3d, u: wp.vec3d, c: wp.float64, s: wp.float64):
     body-frame angular momentum): the orientation turns by ``phi = s c (u.L)`` about ``u`` and
     ``L`` turns back by ``-phi`` (``u.L`` is unchanged). Returns the rotation increment ``dq``:
     the new orientation is ``q dq`` and the new momentum ``rotate_inv(dq, L)``."""
-    return wp.quat_from_axis_angle(u, s * c * wp.dot(u, L))
+    return wp.quat_from_axis_angle(u, s * c * wp.dot(u, L))  # u is a unit axis: Warp's rotation about it
 
 
 @wp.kernel
@@ -242,7 +244,7 @@ def integrate_bodies(
         Lb2 = wp.quat_rotate_inv(dq2, Lb1)
         dq3 = axis_flow(Lb2, u_c, c_c, half)
         Lb3 = wp.quat_rotate_inv(dq3, Lb2)
-        dq4 = casimir_rotation(Lb3, dt * inv_m)
+        dq4 = exact_rotation(Lb3, dt * inv_m)  # the flow of |L|^2 / 2 in the body frame
         r1 = wp.normalize(r0 * dq1 * dq2 * dq3 * dq4)
         w1 = wp.quat_rotate(r1, I_inv_b * wp.quat_rotate_inv(r1, L))
 
@@ -372,10 +374,9 @@ def respond_plane_contacts(
         vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
     vt = vi - n * vn
     jn = vn_plus - vn  # normal velocity change, >= 0
-    vt_len = wp.length(vt)
     vt_plus = vt
-    if vt_len > f64(0.0):
-        vt_plus = vt * wp.max(f64(0.0), f64(1.0) - friction * jn / vt_len)
+    if friction * jn > f64(0.0):  # without friction the tangential velocity passes through (and its derivative)
+        vt_plus = vt + coulomb_friction(-vt, vt, friction * jn)  # velocity changes of a unit mass
     v_plus = vt_plus + n * vn_plus
 
     x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt) + drift
@@ -428,16 +429,8 @@ def outside_bounds_kernel(
 @wp.func
 def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
     """``q`` turned by the world angular velocity ``omega`` [rad/s] for ``duration`` [s]: the
-    exact rotation (axis-angle), renormalised; smooth at ``omega = 0`` (series of sin(x/2)/x)."""
-    th2 = wp.dot(omega, omega) * duration * duration
-    s = wp.float64(0.5) - th2 / wp.float64(48.0)
-    c = wp.float64(1.0) - th2 / wp.float64(8.0) + th2 * th2 / wp.float64(384.0)
-    if th2 > wp.float64(1.0e-8):
-        th = wp.sqrt(th2)
-        s = wp.sin(wp.float64(0.5) * th) / th
-        c = wp.cos(wp.float64(0.5) * th)
-    a = omega * (duration * s)
-    return wp.normalize(wp.quatd(a[0], a[1], a[2], c) * q)
+    exact rotation (:func:`exact_rotation`), renormalised."""
+    return wp.normalize(exact_rotation(omega, duration) * q)
 
 
 @wp.func

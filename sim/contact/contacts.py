@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from core.buffers import host
+from core.buffers import grown_capacity, host
 
 
 class ContactLimitExceeded(RuntimeError):
@@ -48,7 +48,7 @@ class _Rows:
         """At least ``rows`` rows of room, the first :attr:`count` rows kept."""
         if rows <= self.capacity:
             return
-        capacity = max(int(rows), 2 * self.capacity, 64)
+        capacity = grown_capacity(rows, self.capacity, 64)
         for (name, dtype), size in zip(self.FIELDS, self._sizes(capacity).values()):
             new = wp.zeros(size, dtype=dtype, device=self.device)
             old = getattr(self, name, None)

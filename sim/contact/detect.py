@@ -144,7 +144,7 @@ class ContactDetection:
             (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`pose`'s), the
             start positions' and lever arms' device arrays, the predicted positions on the host,
             the inverse inertia device array); the predicted positions' device array is kept in
-            ``_x1_pred_w``.
+            ``x1_pred_w``.
         """
         n, R, B = self.n_vertices + 1, self.replay, self.n_bodies
         empty = self.staging.empty

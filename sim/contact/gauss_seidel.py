@@ -107,7 +107,7 @@ class GaussSeidelSubstep:
         impact zones, ``zone_flags`` (P,), (B,) int32 device arrays or None) and the velocities
         after the impulses ``vel``: the replay's time-of-impact integration
         (:func:`kernels.integrate.time_of_impact_position`, ``time_of_impact_pose``), then the
-        vertices' positions (:meth:`_pose`).
+        vertices' positions (:meth:`sim.contact.detect.ContactDetection.pose`).
 
         Returns:
             (particle positions (P,), body poses (B,), vertex positions (V + 1, 3) on the host

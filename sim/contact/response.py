@@ -140,7 +140,7 @@ class ImpulseCollisionHandler:
     Args:
         model: the finalised model (its surfaces, masses, restitution, friction, thickness).
         max_iterations: CCD/response rounds before the fail-safe.
-        differentiable: the decide-then-replay response (:meth:`_call_replayed`, the default),
+        differentiable: the decide-then-replay response (:class:`sim.contact.replayed.ReplayedSubstep`, the default),
             which a ``wp.Tape`` can record and which passes the physics validation suite
             (``benchmarks/physics.py``); False: projected Gauss-Seidel impulses, 3-4x cheaper
             per step, which fail the suite's flat drops, slopes, rest, stacks and restitution.

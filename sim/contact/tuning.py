@@ -42,7 +42,7 @@ velocity that is exactly separating or tangential stays far inside)."""
 
 END_OF_SUBSTEP = 1e-9
 """A CCD hit this close (relative) to the end of the substep lies on the end of the planned path;
-its approach is judged by the velocities at ``t*`` alone (see ``_approach``)."""
+its approach is judged by the velocities at ``t*`` alone (see :meth:`sim.contact.detect.ContactDetection.approach`)."""
 
 PLANE_ROUNDING_SLACK = 1e-9
 """A particle counts as a plane's proximity contact below ``(1 - PLANE_ROUNDING_SLACK) delta``:
@@ -68,7 +68,7 @@ afresh, so the contacts are the same as with a query per substep."""
 CCD_REACH_SLACK = 0.5
 """How much farther than predicted [separations] a vertex may end from its start before the
 CCD rounds test every candidate instead of those that the proximity pass kept for them
-(:meth:`ImpulseCollisionHandler._proximity_hits`). Resting contact's rounds change the
+(:meth:`sim.contact.detect.ContactDetection.proximity_hits`). Resting contact's rounds change the
 predicted motion by about ``SEPARATION_RATE`` separations; measured over 100 steps, 0.5 kept
 the short list in 96% of cloth_drop's CCD rounds (154 pairs instead of ~2000), 0.25 in 89%
 (55 pairs), 1.0 in 98% (343 pairs)."""
