@@ -66,10 +66,10 @@ sys.path.insert(0, os.path.join(HERE, ".."))
 
 import warp as wp
 
-from collision.roots import init_warp
+from core.device import init_warp
 from sim.builder import ModelBuilder
-from sim.implicit import SolveError
-from sim.integrator import make_integrator
+from sim.integrators.implicit import SolveError
+from sim.integrators import make_integrator
 from sim.model import Model
 
 FRAME_DT = 1.0 / 60.0

@@ -3,7 +3,7 @@
     python benchmarks/physics.py [--quick] [--only NAME,...] [--out-dir benchmarks/results]
 
 Every check runs for both collision responses of
-:class:`collision.response.ImpulseCollisionHandler` (``gauss_seidel``: ``differentiable=False``;
+:class:`sim.contact.response.ImpulseCollisionHandler` (``gauss_seidel``: ``differentiable=False``;
 ``replayed``: ``differentiable=True``, the response :func:`sim.rollout.rollout` uses) and at
 4, 8, 16 and 32 substeps of a 1/60 s step (``--quick``: 8 substeps only, and shorter runs where a
 check says so). Unless a check says otherwise: thickness 1 mm, boxes of half extent 0.1 m at
@@ -194,7 +194,7 @@ def rotation_angle(q: np.ndarray, q0: np.ndarray) -> np.ndarray:
 
 
 def _rot_matrix(q: np.ndarray) -> np.ndarray:
-    from sim.rotation import quat_to_matrix
+    from core.rotation import quat_to_matrix
 
     return quat_to_matrix(q)
 
@@ -226,8 +226,8 @@ class Run:
 
     def __init__(self, builder, response: str, substeps: int, dt: float = DT, particle_qd=None,
                  exact_gravity: bool = False) -> None:
-        from collision.response import ImpulseCollisionHandler
-        from sim.integrator import make_integrator
+        from sim.contact.response import ImpulseCollisionHandler
+        from sim.integrators import make_integrator
 
         differentiable = _check_response(response)
         self.model = builder.finalize()

@@ -19,7 +19,7 @@ the same grid in the same process:
   and one thread),
 * ``benchmark_cloth_warp.WpIntegrator(cloth, "cpu")`` (float32 Warp, in place, no tape support).
 
-Ours is :class:`sim.integrator.SemiImplicitIntegrator` in float64 on the same springs (gravity
+Ours is :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator` in float64 on the same springs (gravity
 -9.8 m/s^2 along y like the numpy/torch peers), timed twice: without gradients (two scratch
 States reused) and tape-ready (``requires_grad`` States: fresh arrays per substep, what a
 ``wp.Tape`` needs; the tape itself is not recorded). A step is one force evaluation + one
@@ -47,7 +47,7 @@ wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.confi
 wp.config.quiet = True
 wp.init()
 
-from sim.integrator import SemiImplicitIntegrator  # noqa: E402
+from sim.integrators.semi_implicit import SemiImplicitIntegrator  # noqa: E402
 from sim.model import Model  # noqa: E402
 
 PEER_DIR = os.path.join(os.path.dirname(wp.__file__), "examples", "benchmarks")
@@ -266,7 +266,7 @@ class _SceneRun:
     the start, one step per :meth:`step` call, its time summed."""
 
     def __init__(self, model, args, mode: str) -> None:
-        from collision.response import ImpulseCollisionHandler
+        from sim.contact.response import ImpulseCollisionHandler
 
         self.args = args
         self.integrator = SemiImplicitIntegrator(model)
@@ -393,10 +393,10 @@ def _cloth_drop_run(cells: int, integrator: str, substeps: int, steps: int) -> d
     """``cloth_drop`` at ``cells`` per side for ``steps`` steps from the start: ms per step (the
     integrator's ``step``: in all, and without the collision handler's share, i.e. forces +
     integration + plane contacts), penetrations and the energy peak, or ``{"diverged": True}``."""
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from scenes import cloth_drop
     from scenes.sim_common import EnergyMeter, build_model, default_args
-    from sim.integrator import make_integrator
+    from sim.integrators import make_integrator
     from sim.penetration import PenetrationChecker
 
     model = build_model(cloth_drop.build, default_args(cloth_res=cells))

@@ -113,7 +113,7 @@ def _positions(final: dict[str, np.ndarray]) -> np.ndarray:
 def _scene_scale(module) -> tuple[float, float]:
     """(size [m]: the diagonal of the scene's initial bounding box; the contact thickness the
     collision handler uses at the scene's defaults [m])."""
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from scenes.sim_common import build_model, default_args
 
     model = build_model(module.build, default_args())

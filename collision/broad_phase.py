@@ -54,8 +54,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import RecordedLaunches, host, upload, zero
-from collision.roots import init_warp
+from core.buffers import RecordedLaunches, grown_capacity, host, upload, zero
+from core.device import init_warp
 from kernels import broad_phase as _k
 
 __all__ = ["PAD_ABS", "PAD_REL", "BroadPhase", "candidate_pairs", "mesh_edges"]
@@ -432,7 +432,7 @@ class BroadPhase:
 
     def _pairs(self, launches: list, buf: wp.array) -> tuple[wp.array, int]:
         """The launches ``(key, kernel, dim, inputs)`` into ``buf`` through one shared counter; on
-        overflow grow it to the exact count and launch them all again.
+        overflow grow it (:func:`core.buffers.grown_capacity`) and launch them all again.
 
         Returns the buffer to keep and the number of pairs in it.
         """
@@ -447,7 +447,7 @@ class BroadPhase:
                 raise RuntimeError("broad phase: more than 2^31 candidate pairs; reduce inflation")
             if total <= buf.shape[0]:
                 break
-            buf = wp.empty(total + total // 4, dtype=wp.vec2i, device=dev)
+            buf = wp.empty(grown_capacity(total, buf.shape[0], 64), dtype=wp.vec2i, device=dev)
         return buf, total
 
 

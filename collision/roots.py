@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from core.device import init_warp
 from kernels import roots as _k
 from kernels import variants as _variants
 
@@ -60,18 +61,6 @@ near ``-a/q``) has an exact derivative growing like ``|t|^3 / |p'(t)|`` (1e16 at
 that has nothing to do with a merging pair, and the robust division bounds it."""
 
 _DEVICE = "cpu"
-_initialised = False
-
-
-def init_warp() -> None:
-    """The project's one Warp initialisation: ``wp.init()`` once, with Warp's start-up banner kept
-    off stdout (scene CLIs print exactly one JSON line there). Safe to call repeatedly."""
-    global _initialised
-    if not _initialised:
-        # keep Warp's banner off stdout: scene CLIs print exactly one JSON line there
-        wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.config.log_level
-        wp.init()
-        _initialised = True
 
 
 def _check_coefficients(p, n: int, name: str = "p") -> np.ndarray:

@@ -80,7 +80,7 @@ def store_box(
     out_hi[i] = wp.vec3(upper32(b[0], m0), upper32(b[1], m1), upper32(b[2], m2))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def vertex_boxes_kernel(
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
@@ -95,7 +95,7 @@ def vertex_boxes_kernel(
     store_box(wp.min(a, b), wp.max(a, b), inflation, i, out_lo, out_hi)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def edge_boxes_kernel(
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
@@ -115,7 +115,7 @@ def edge_boxes_kernel(
     store_box(lo, hi, inflation, i, query_lo, query_hi)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def face_boxes_kernel(
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
@@ -149,7 +149,7 @@ def emit(counter: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.vec2i), i: 
         pairs[slot] = wp.vec2i(i, j)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def vertex_face_pairs_kernel(
     bvh: wp.uint64,
     tree_body: int,
@@ -187,7 +187,7 @@ def vertex_face_pairs_kernel(
         emit(counter, pairs, v, int(face_index[f]))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def edge_edge_pairs_kernel(
     bvh: wp.uint64,
     tree_body: int,

@@ -363,7 +363,7 @@ def ccd_query(kind: int, m: mat83d, thickness: wp.float64) -> wp.vec3d:
     return wp.vec3d(zero, inf, wp.float64(-1.0))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def ccd_kernel(
     kind: int,
     queries: wp.array(dtype=mat83d),
@@ -466,7 +466,7 @@ def pair_query(q: wp.vec4i, x0: wp.array(dtype=wp.vec3d), x1: wp.array(dtype=wp.
     return m
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def pair_ccd_kernel(
     vf_count: int,
     vf_pairs: wp.array(dtype=wp.vec2i),

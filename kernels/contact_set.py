@@ -6,7 +6,7 @@ A substep's *hits* (one detection pass: the proximity pairs at the start, or one
 crossings) are appended by the detection kernels through counters, then put into one canonical
 order (:func:`hit_keys_kernel`, :func:`sort_keys_kernel` and :func:`gather_hits_kernel`:
 ascending pair keys, the same order whatever the thread schedule or the broad phase's candidate
-order). The *contact set* (:class:`collision.contacts.Contacts`) grows by those hits
+order). The *contact set* (:class:`sim.contact.contacts.Contacts`) grows by those hits
 (:func:`add_contacts_kernel`, sequential: new pairs are appended in the hits' order, a pair
 already in the set takes the new geometry and the earlier time). A pair is ``(kind, a, b)``:
 kind 0 vertex-face ``(vertex, face)``, 1 edge-edge ``(edge, edge)``, 2 vertex-plane
@@ -17,8 +17,8 @@ from typing import Any
 
 import warp as wp
 
-from kernels.contact import (PAIR_VERTEX_PLANE, TIME_DETECTED, TIME_PLANE, TIME_START, VERTEX_BODY,
-                             VERTEX_PARTICLE, vertex_time, vertex_velocity)
+from kernels.pose import (PAIR_VERTEX_PLANE, TIME_DETECTED, TIME_PLANE, TIME_START, VERTEX_PARTICLE, vertex_time,
+                          vertex_velocity)
 
 KEY_NONE = wp.constant(wp.int64(9223372036854775807))
 """The key of a hit left out (sorts after every pair's key)."""
@@ -35,7 +35,7 @@ def infinity() -> wp.float64:
     return wp.float64(1.0e308) * wp.float64(10.0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def hit_keys_kernel(
     mesh_count: int,
     mesh_kind: wp.array(dtype=wp.int32),
@@ -88,7 +88,7 @@ def _sift_down(keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32),
             root = end  # done
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
     """Heap sort of ``keys[0:count]`` (ascending) with their ``values``, launched with ``dim=1``:
     on the CPU, where every launch runs its threads one after another, it costs a few
@@ -112,7 +112,7 @@ def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.arra
         end = end - 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_hits_kernel(
     keys: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
@@ -138,7 +138,7 @@ def gather_hits_kernel(
     """Hit ``tid`` in sorted order (``order``: :func:`sort_keys_kernel`'s values) from the narrow
     phase's buffers or the vertex-plane ones: its kind, pair, vertex indices (vertex-plane: the
     vertex and three times the dummy static vertex), detected time (fraction of the substep),
-    source (:func:`kernels.contact.contact_geometry_kernel`'s) and plane index (0 for mesh
+    source (:func:`kernels.contact_geometry.contact_geometry_kernel`'s) and plane index (0 for mesh
     pairs); ``row`` (the hit's row in the contact set, :func:`match_contacts_kernel`) is reset
     to -1. ``time_mode``: 0 every hit is a proximity contact at ``t* = 0`` (source
     ``TIME_START``); 1 a root's slot (1-3) for the narrow phase's hits at a root of the cubic,
@@ -185,7 +185,7 @@ def gather_hits_kernel(
             source[i] = TIME_DETECTED
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def plane_proximity_kernel(
     x: wp.array(dtype=wp.vec3d),
     vertex_ids: wp.array(dtype=wp.int32),
@@ -213,7 +213,7 @@ def plane_proximity_kernel(
             pairs[wp.atomic_add(counter, 0, 1)] = wp.vec2i(v, k)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def plane_crossing_kernel(
     x1: wp.array(dtype=wp.vec3d),
     vertex_ids: wp.array(dtype=wp.int32),
@@ -241,7 +241,7 @@ def plane_crossing_kernel(
             time[slot] = wp.clamp(d0 / (d0 - d1), wp.float64(0.0), wp.float64(1.0))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def match_contacts_kernel(
     contact_kind: wp.array(dtype=wp.int32),
     contact_pair: wp.array(dtype=wp.vec2i),
@@ -268,7 +268,7 @@ def match_contacts_kernel(
             row[lo] = wp.int32(c)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def approach_kernel(
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
@@ -296,7 +296,7 @@ def approach_kernel(
     approaching: wp.array(dtype=wp.int32),
 ):
     """Whether CCD hit ``tid`` (time ``toi`` [s], weights and normal at it:
-    :func:`kernels.contact.contact_geometry_kernel`) approaches, counted in ``counter[0]``: its
+    :func:`kernels.contact_geometry.contact_geometry_kernel`) approaches, counted in ``counter[0]``: its
     normal relative velocity at ``t*`` (each vertex's ``v-`` before its owner's earliest
     contact time, the current velocity from then on), or its mean over the straight paths
     ``x0 -> x1`` that the CCD checked, is below ``-approach_eps`` times the largest vertex
@@ -388,7 +388,7 @@ def rigid_only(vertices: wp.vec4i, weights: wp.vec4d, vertex_type: wp.array(dtyp
     return rigid
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def add_contacts_kernel(
     hit_count: int,
     all_new: int,
@@ -433,7 +433,7 @@ def add_contacts_kernel(
     the rows after the call.
 
     With ``record_merge`` the decisions the taped replay repeats
-    (:func:`kernels.contact.merge_contacts_kernel`) are written per row of the grown set:
+    (:func:`kernels.contact_geometry.merge_contacts_kernel`) are written per row of the grown set:
     ``merge_hit`` the hit a row takes its geometry from (-1: unchanged), ``keep_toi`` /
     ``keep_target`` whether it kept its own time / target."""
     zero = wp.float64(0.0)
@@ -503,344 +503,3 @@ def add_contacts_kernel(
     count[0] = wp.int32(n)
 
 
-@wp.kernel
-def owner_times_reset_kernel(
-    particle_count: int,
-    particle_zone: wp.array(dtype=wp.int32),
-    body_zone: wp.array(dtype=wp.int32),
-    particle_time: wp.array(dtype=wp.float64),
-    body_time: wp.array(dtype=wp.float64),
-):
-    """Before :func:`owner_times_kernel`: each particle's (first ``particle_count`` threads) and
-    body's earliest contact time is inf, or 0 for a member of an impact zone (nonzero zone
-    flag: it moves rigidly over the whole substep)."""
-    i = wp.tid()
-    if i < particle_count:
-        t = infinity()
-        if particle_zone[i] != 0:
-            t = wp.float64(0.0)
-        particle_time[i] = t
-        return
-    b = i - particle_count
-    t = infinity()
-    if body_zone[b] != 0:
-        t = wp.float64(0.0)
-    body_time[b] = t
-
-
-@wp.kernel
-def owner_times_kernel(
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    toi: wp.array(dtype=wp.float64),
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    particle_time: wp.array(dtype=wp.float64),
-    body_time: wp.array(dtype=wp.float64),
-):
-    """Earliest contact time [s] per particle (a vertex with a nonzero weight) and per body (any
-    of its vertices) over the contact set's row ``tid``: the velocity switches from ``v-`` to
-    ``v+`` then (a minimum: the same on every device whatever the order, for the finite times of
-    a finite state)."""
-    c = wp.tid()
-    q = vertices[c]
-    w = weights[c]
-    t = toi[c]
-    for s in range(4):
-        v = q[s]
-        kind = vertex_type[v]
-        if kind == VERTEX_PARTICLE:
-            if w[s] != wp.float64(0.0):
-                wp.atomic_min(particle_time, vertex_owner[v], t)
-        elif kind == VERTEX_BODY:
-            wp.atomic_min(body_time, vertex_owner[v], t)
-
-
-OWNER_TIMED = wp.constant(1 << 30)
-"""Added to a contact row in :func:`owner_rows_kernel`'s keys when its time is differentiated
-(rows below 2^30)."""
-
-
-@wp.kernel
-def owner_rows_reset_kernel(particle_count: int, particle_key: wp.array(dtype=wp.int32),
-                            body_key: wp.array(dtype=wp.int32)):
-    """-1 (no contact) for each particle's (first ``particle_count`` threads) and body's key."""
-    i = wp.tid()
-    if i < particle_count:
-        particle_key[i] = -1
-    else:
-        body_key[i - particle_count] = -1
-
-
-@wp.kernel
-def owner_rows_kernel(
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    toi: wp.array(dtype=wp.float64),
-    timed: wp.array(dtype=wp.int32),
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    particle_time: wp.array(dtype=wp.float64),
-    body_time: wp.array(dtype=wp.float64),
-    particle_key: wp.array(dtype=wp.int32),
-    body_key: wp.array(dtype=wp.int32),
-):
-    """The contact row whose time is its owner's earliest (:func:`owner_times_kernel`), per
-    particle / body, as the largest key ``row + OWNER_TIMED timed``: among ties (the same
-    ``t*``: a corner on a face diagonal is several pairs) a row whose time the replay
-    differentiates, then the last row (a maximum: the same on every device)."""
-    c = wp.tid()
-    q = vertices[c]
-    w = weights[c]
-    t = toi[c]
-    key = wp.int32(c)
-    if timed[c] != 0:
-        key = key + OWNER_TIMED
-    for s in range(4):
-        v = q[s]
-        kind = vertex_type[v]
-        o = vertex_owner[v]
-        if kind == VERTEX_PARTICLE:
-            if w[s] != wp.float64(0.0) and t == particle_time[o]:
-                wp.atomic_max(particle_key, o, key)
-        elif kind == VERTEX_BODY:
-            if t == body_time[o]:
-                wp.atomic_max(body_key, o, key)
-
-
-@wp.kernel
-def owner_rows_finish_kernel(
-    particle_count: int,
-    particle_key: wp.array(dtype=wp.int32),
-    body_key: wp.array(dtype=wp.int32),
-    particle_zone: wp.array(dtype=wp.int32),
-    body_zone: wp.array(dtype=wp.int32),
-    particle_row: wp.array(dtype=wp.int32),
-    body_row: wp.array(dtype=wp.int32),
-):
-    """Each particle's / body's contact row for the time-of-impact integration
-    (:func:`kernels.contact.time_of_impact_kernel`): -1 none, -2 a member of an impact
-    zone (nonzero zone flag), else the row of :func:`owner_rows_kernel`'s key."""
-    i = wp.tid()
-    if i < particle_count:
-        k = particle_key[i]
-        if k >= 0:
-            k = k % OWNER_TIMED
-        if particle_zone[i] != 0:
-            k = -2
-        particle_row[i] = k
-        return
-    b = i - particle_count
-    k = body_key[b]
-    if k >= 0:
-        k = k % OWNER_TIMED
-    if body_zone[b] != 0:
-        k = -2
-    body_row[b] = k
-
-
-@wp.func
-def _mobile_row(q: wp.vec4i, w: wp.vec4d, mobile_vertex: wp.array(dtype=wp.int32)) -> int:
-    """Whether a contact moves something: a vertex with a nonzero weight that an impulse can
-    move (a rigid vertex or an unpinned particle)."""
-    for s in range(4):
-        if w[s] != wp.float64(0.0) and mobile_vertex[q[s]] != 0:
-            return 1
-    return 0
-
-
-@wp.kernel
-def initial_active_kernel(
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    normal_impulse: wp.array(dtype=wp.float64),
-    mobile_vertex: wp.array(dtype=wp.int32),
-    mobile: wp.array(dtype=wp.int32),
-    active: wp.array(dtype=wp.int32),
-):
-    """The first active set of the exact solve: the contacts whose Gauss-Seidel normal impulse
-    ended positive and that move something (``mobile``, kept for
-    :func:`active_set_update_kernel`)."""
-    c = wp.tid()
-    m = _mobile_row(vertices[c], weights[c], mobile_vertex)
-    mobile[c] = wp.int32(m)
-    a = 0
-    if m != 0 and normal_impulse[c] > wp.float64(0.0):
-        a = 1
-    active[c] = wp.int32(a)
-
-
-@wp.kernel
-def active_set_update_kernel(
-    count: int,
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    normals: wp.array(dtype=wp.vec3d),
-    targets: wp.array(dtype=wp.float64),
-    collided: wp.array(dtype=wp.int32),
-    mobile: wp.array(dtype=wp.int32),
-    active: wp.array(dtype=wp.int32),
-    normal: wp.array(dtype=wp.vec3d),
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    lever: wp.array(dtype=wp.vec3d),
-    particle_qd: wp.array(dtype=wp.vec3d),
-    body_qd: wp.array(dtype=wp.spatial_vectord),
-    tolerance: wp.float64,
-    collided_tolerance: wp.float64,
-    pulling: wp.float64,
-    normal_scratch: wp.array(dtype=wp.float64),
-    repaired: wp.array(dtype=wp.int32),
-    changes: wp.array(dtype=wp.int32),
-):
-    """The active set's repair after an exact solve (launched with ``dim=1``: the rule needs the
-    largest normal impulse first): an active contact whose normal impulse ``normal . n`` pulls
-    (below ``-pulling`` times the largest magnitude) leaves the set; an inactive one that moves
-    something and whose normal relative velocity after the solve (``particle_qd``, ``body_qd``)
-    is below its target by more than ``tolerance`` (``collided_tolerance`` for the rows a CCD hit
-    reached: their primitives meet within the substep, so the least approach left would be a
-    hit of the next CCD round again) joins it. ``repaired``: the new set; ``changes[0]``: how
-    many contacts changed."""
-    zero = wp.float64(0.0)
-    largest = zero
-    for c in range(count):
-        jn = wp.dot(normal[c], normals[c])
-        normal_scratch[c] = jn
-        largest = wp.max(largest, wp.abs(jn))
-    largest = wp.max(largest, wp.float64(1.0e-300))
-    n_changes = int(0)
-    for c in range(count):
-        a = active[c]
-        new = a
-        if a != 0:
-            if normal_scratch[c] < -pulling * largest:
-                new = 0
-        elif mobile[c] != 0:
-            q = vertices[c]
-            w = weights[c]
-            vrel = wp.vec3d(zero, zero, zero)
-            for s in range(4):
-                vrel = vrel + w[s] * vertex_velocity(q[s], vertex_type, vertex_owner, lever, particle_qd, body_qd)
-            tol = tolerance
-            if collided[c] != 0:
-                tol = collided_tolerance
-            if wp.dot(vrel, normals[c]) < targets[c] - tol:
-                new = 1
-        repaired[c] = new
-        if new != a:
-            n_changes = n_changes + 1
-    changes[0] = wp.int32(n_changes)
-
-
-@wp.kernel
-def flags_differ_kernel(a: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.int32), counter: wp.array(dtype=wp.int32)):
-    """Counts in ``counter[0]`` the entries where the flags ``a`` and ``b`` differ."""
-    i = wp.tid()
-    if (a[i] != 0) != (b[i] != 0):
-        wp.atomic_add(counter, 0, 1)
-
-
-@wp.kernel
-def set_impulses_kernel(
-    active: wp.array(dtype=wp.int32),
-    normal: wp.array(dtype=wp.vec3d),
-    normals: wp.array(dtype=wp.vec3d),
-    normal_impulse: wp.array(dtype=wp.float64),
-    friction_impulse: wp.array(dtype=wp.vec3d),
-):
-    """The contact set's accumulated impulses after an exact solve: the normal impulse of an
-    active contact (``normal . n``), 0 for the others, no friction impulse (the next
-    Gauss-Seidel pass starts from them)."""
-    c = wp.tid()
-    jn = wp.float64(0.0)
-    if active[c] != 0:
-        jn = wp.dot(normal[c], normals[c])
-    normal_impulse[c] = jn
-    friction_impulse[c] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-
-
-@wp.func
-def _share_node(q: wp.vec4i, w: wp.vec4d, s: int, particle_count: int, vertex_type: wp.array(dtype=wp.int32),
-                vertex_owner: wp.array(dtype=wp.int32)) -> int:
-    """The particle (a vertex with a nonzero weight) or body (``particle_count`` + body) that
-    slot ``s`` of a contact moves, or -1."""
-    v = q[s]
-    kind = vertex_type[v]
-    if kind == VERTEX_PARTICLE and w[s] != wp.float64(0.0):
-        return int(vertex_owner[v])
-    if kind == VERTEX_BODY:
-        return particle_count + int(vertex_owner[v])
-    return -1
-
-
-@wp.kernel
-def friction_share_count_kernel(
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    active: wp.array(dtype=wp.int32),
-    particle_count: int,
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    node_count: wp.array(dtype=wp.int32),
-):
-    """How many active contacts move each particle / body (each contact counted once per node)."""
-    c = wp.tid()
-    if active[c] == 0:
-        return
-    q = vertices[c]
-    w = weights[c]
-    for s in range(4):
-        node = _share_node(q, w, s, particle_count, vertex_type, vertex_owner)
-        if node >= 0:
-            seen = int(0)
-            for r in range(s):
-                if _share_node(q, w, r, particle_count, vertex_type, vertex_owner) == node:
-                    seen = 1
-            if seen == 0:
-                wp.atomic_add(node_count, node, 1)
-
-
-@wp.kernel
-def friction_share_kernel(
-    vertices: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    particle_count: int,
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    node_count: wp.array(dtype=wp.int32),
-    share: wp.array(dtype=wp.float64),
-):
-    """Per contact: one over the largest number of active contacts that any particle or body it
-    moves takes part in (:func:`kernels.contact.friction_impulses_kernel` applies the friction
-    impulses of one pass together)."""
-    c = wp.tid()
-    q = vertices[c]
-    w = weights[c]
-    most = int(1)
-    for s in range(4):
-        node = _share_node(q, w, s, particle_count, vertex_type, vertex_owner)
-        if node >= 0:
-            most = wp.max(most, int(node_count[node]))
-    share[c] = wp.float64(1.0) / wp.float64(most)
-
-
-@wp.kernel
-def active_unknowns_kernel(
-    count: int,
-    active: wp.array(dtype=wp.int32),
-    unknowns: wp.array(dtype=wp.int32),
-    contact_unknown: wp.array(dtype=wp.int32),
-    unknown_count: wp.array(dtype=wp.int32),
-):
-    """The exact solve's unknowns (launched with ``dim=1``, in row order): ``unknowns`` the
-    active contacts, ``contact_unknown[c]`` each contact's unknown (-1 inactive),
-    ``unknown_count[0]`` their number."""
-    n = int(0)
-    for c in range(count):
-        if active[c] != 0:
-            unknowns[n] = wp.int32(c)
-            contact_unknown[c] = wp.int32(n)
-            n = n + 1
-        else:
-            contact_unknown[c] = -1
-    unknown_count[0] = wp.int32(n)

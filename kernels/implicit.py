@@ -10,7 +10,7 @@ with ``Kx = -df/dx`` and ``Kd = -df/dv`` of the springs. Per spring with ``d = x
 part clamped at 0 for a compressed spring, so the matrix stays positive semi-definite: Choi & Ko
 2002) and ``Kd = kd n n^T``, acting on ``p_i - p_j``. Pinned particles (``inv_mass == 0``) keep
 ``dv = 0``: their rows are the identity and their columns are dropped, so the system is symmetric
-positive definite and conjugate gradients apply (:mod:`sim.implicit`).
+positive definite and conjugate gradients apply (:mod:`sim.integrators.implicit`).
 
 Every kernel writes a fresh output (``y`` zeroed by the caller before the atomic adds), so the
 operator can be replayed on a ``wp.Tape``: the solve's adjoint differentiates
@@ -133,7 +133,7 @@ def changed(x_pred: wp.vec3d, v_pred: wp.vec3d, x_after: wp.vec3d, v_after: wp.v
     return moved or wp.length(v_after - v_pred) > tol * (wp.length(v_pred) + wp.length(v_after))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def collided_particles(
     x_pred: wp.array(dtype=wp.vec3d),
     v_pred: wp.array(dtype=wp.vec3d),
@@ -322,7 +322,7 @@ def negate_kernel(a: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     out[i] = -a[i]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def strain_growth(
     x_before: wp.array(dtype=wp.vec3d),
     x_after: wp.array(dtype=wp.vec3d),

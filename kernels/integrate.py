@@ -47,6 +47,9 @@ the arrays it read), so a ``wp.Tape`` over a rollout can replay the kernels back
 
 import warp as wp
 
+from kernels.friction import coulomb_friction
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, body_point
+
 f64 = wp.float64
 
 
@@ -140,18 +143,19 @@ def principal_axes_grad(I: wp.mat33d, adj_Q: wp.mat33d, adj_d: wp.vec3d):
 
 
 @wp.func
-def casimir_rotation(L: wp.vec3d, s: wp.float64):
-    """Unit quaternion of the rotation by the angle ``s |L|`` about ``L`` (``exp(s [L]x)``): the
-    flow of ``|L|^2 / 2`` for the time ``s`` in the body frame. Smooth at ``L = 0`` (a series for
-    angles below 1e-6, truncation ~1e-27), so the tape never differentiates ``sqrt(0)``."""
-    th2 = s * s * wp.dot(L, L)
+def exact_rotation(w: wp.vec3d, s: wp.float64):
+    """Unit quaternion of the rotation by the angle ``s |w|`` about ``w`` (``exp(s [w]x)``): the
+    one quaternion update of the bodies (free flight, the time-of-impact turns, the push). Smooth
+    at ``w = 0`` (a series for angles below 1e-6, truncation ~1e-27), so the tape never
+    differentiates ``sqrt(0)``."""
+    th2 = s * s * wp.dot(w, w)
     a = f64(0.5) * s * (f64(1.0) - th2 / f64(24.0))  # s sin(th/2) / th
     c = f64(1.0) - th2 / f64(8.0)  # cos(th/2)
     if th2 > f64(1.0e-12):
         th = wp.sqrt(th2)
         a = s * wp.sin(f64(0.5) * th) / th
         c = wp.cos(f64(0.5) * th)
-    return wp.quatd(L[0] * a, L[1] * a, L[2] * a, c)
+    return wp.quatd(w[0] * a, w[1] * a, w[2] * a, c)
 
 
 @wp.func
@@ -160,7 +164,7 @@ def axis_flow(L: wp.vec3d, u: wp.vec3d, c: wp.float64, s: wp.float64):
     body-frame angular momentum): the orientation turns by ``phi = s c (u.L)`` about ``u`` and
     ``L`` turns back by ``-phi`` (``u.L`` is unchanged). Returns the rotation increment ``dq``:
     the new orientation is ``q dq`` and the new momentum ``rotate_inv(dq, L)``."""
-    return wp.quat_from_axis_angle(u, s * c * wp.dot(u, L))
+    return wp.quat_from_axis_angle(u, s * c * wp.dot(u, L))  # u is a unit axis: Warp's rotation about it
 
 
 @wp.kernel
@@ -240,7 +244,7 @@ def integrate_bodies(
         Lb2 = wp.quat_rotate_inv(dq2, Lb1)
         dq3 = axis_flow(Lb2, u_c, c_c, half)
         Lb3 = wp.quat_rotate_inv(dq3, Lb2)
-        dq4 = casimir_rotation(Lb3, dt * inv_m)
+        dq4 = exact_rotation(Lb3, dt * inv_m)  # the flow of |L|^2 / 2 in the body frame
         r1 = wp.normalize(r0 * dq1 * dq2 * dq3 * dq4)
         w1 = wp.quat_rotate(r1, I_inv_b * wp.quat_rotate_inv(r1, L))
 
@@ -253,11 +257,11 @@ def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, t
     """``x0 + t* v- + (h - t*) v+``: the end of a substep ``h`` [s] whose velocity switches from
     ``v-`` to ``v+`` at the time of impact ``ts`` [s] (the one time-of-impact integration: the
     particles' plane contacts here, and the collision response's particles and bodies,
-    :mod:`kernels.contact`)."""
+    :mod:`kernels.pose`)."""
     return x0 + ts * v_minus + (h - ts) * v_plus
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def find_plane_contacts(
     x0: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
@@ -370,10 +374,9 @@ def respond_plane_contacts(
         vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
     vt = vi - n * vn
     jn = vn_plus - vn  # normal velocity change, >= 0
-    vt_len = wp.length(vt)
     vt_plus = vt
-    if vt_len > f64(0.0):
-        vt_plus = vt * wp.max(f64(0.0), f64(1.0) - friction * jn / vt_len)
+    if friction * jn > f64(0.0):  # without friction the tangential velocity passes through (and its derivative)
+        vt_plus = vt + coulomb_friction(-vt, vt, friction * jn)  # velocity changes of a unit mass
     v_plus = vt_plus + n * vn_plus
 
     x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt) + drift
@@ -421,3 +424,148 @@ def outside_bounds_kernel(
         flag[0] = 1
     elif wp.length(x - center) > radius:
         flag[0] = 1
+
+
+@wp.func
+def quat_turn(q: wp.quatd, omega: wp.vec3d, duration: wp.float64) -> wp.quatd:
+    """``q`` turned by the world angular velocity ``omega`` [rad/s] for ``duration`` [s]: the
+    exact rotation (:func:`exact_rotation`), renormalised."""
+    return wp.normalize(exact_rotation(omega, duration) * q)
+
+
+@wp.func
+def time_of_impact_pose(X: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord, ts: wp.float64,
+                        h: wp.float64):
+    """The same for a body pose: the centre of mass as a particle, the orientation turned by
+    ``w-`` for ``t*`` and by ``w+`` for ``h - t*`` (twists angular, linear)."""
+    p = time_of_impact_position(wp.transform_get_translation(X), wp.spatial_bottom(v_minus), wp.spatial_bottom(v_plus),
+                                ts, h)
+    r = quat_turn(quat_turn(wp.transform_get_rotation(X), wp.spatial_top(v_minus), ts), wp.spatial_top(v_plus), h - ts)
+    return wp.transformd(p, r)
+
+
+@wp.kernel
+def time_of_impact_kernel(
+    particle_count: int,
+    x0: wp.array(dtype=wp.vec3d),
+    x_pred: wp.array(dtype=wp.vec3d),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_v_moving: wp.array(dtype=wp.vec3d),
+    particle_contact: wp.array(dtype=wp.int32),
+    q0: wp.array(dtype=wp.transformd),
+    q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_v_moving: wp.array(dtype=wp.spatial_vectord),
+    body_contact: wp.array(dtype=wp.int32),
+    toi: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    x1: wp.array(dtype=wp.vec3d),
+    q1: wp.array(dtype=wp.transformd),
+):
+    """Time-of-impact integration of particle ``tid`` (first ``particle_count`` threads;
+    :func:`time_of_impact_position`) and of body ``tid - particle_count``
+    (:func:`time_of_impact_pose`) with the ``t*`` of its earliest contact row (-1: no contact,
+    the prediction stays; -2: impact zone, its rigid motion from ``t* = 0``), plus the push:
+    the moving velocities' excess over ``v+`` (``v_moving - v+``, the separation restored at
+    the position level) as a displacement over the whole substep ``h``, whatever ``t*`` is (a
+    contact found at the end of the substep still ends separated: ending it touching would
+    leave the next substep no side to push it to)."""
+    i = wp.tid()
+    if i < particle_count:
+        k = particle_contact[i]
+        if k == -1:
+            x1[i] = x_pred[i]
+        elif k == -2:
+            x1[i] = x0[i] + h * particle_v_moving[i]
+        else:
+            x1[i] = time_of_impact_position(x0[i], particle_v_minus[i], particle_v_plus[i], toi[k], h) + h * (
+                particle_v_moving[i] - particle_v_plus[i])
+        return
+    b = i - particle_count
+    kb = body_contact[b]
+    if kb == -1:
+        q1[b] = q_pred[b]
+        return
+    ts = wp.float64(0.0)
+    if kb >= 0:
+        ts = toi[kb]
+    pose = time_of_impact_pose(q0[b], body_v_minus[b], body_v_plus[b], ts, h)
+    push = body_v_moving[b] - body_v_plus[b]
+    q1[b] = wp.transformd(wp.transform_get_translation(pose) + h * wp.spatial_bottom(push),
+                          quat_turn(wp.transform_get_rotation(pose), wp.spatial_top(push), h))
+
+
+@wp.func
+def planned_position(x0: wp.vec3d, x_pred: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, ts: wp.float64,
+                     h: wp.float64) -> wp.vec3d:
+    """The Gauss-Seidel response's plan (not taped) of one particle: :func:`time_of_impact_position`
+    at its earliest contact time ``ts`` [s] (inf: none, the prediction ``x_pred`` stays; 0 for
+    an impact zone's)."""
+    if wp.isinf(ts):
+        return x_pred
+    return time_of_impact_position(x0, v_minus, v_plus, ts, h)
+
+
+@wp.func
+def planned_pose(q0: wp.transformd, q_pred: wp.transformd, v_minus: wp.spatial_vectord, v_plus: wp.spatial_vectord,
+                 ts: wp.float64, h: wp.float64) -> wp.transformd:
+    """The same for a body's pose (:func:`time_of_impact_pose`)."""
+    if wp.isinf(ts):
+        return q_pred
+    return time_of_impact_pose(q0, v_minus, v_plus, ts, h)
+
+
+@wp.kernel
+def planned_substep_kernel(
+    particle_q0: wp.array(dtype=wp.vec3d),
+    particle_q_pred: wp.array(dtype=wp.vec3d),
+    particle_v_minus: wp.array(dtype=wp.vec3d),
+    particle_v_plus: wp.array(dtype=wp.vec3d),
+    particle_time: wp.array(dtype=wp.float64),
+    body_q0: wp.array(dtype=wp.transformd),
+    body_q_pred: wp.array(dtype=wp.transformd),
+    body_v_minus: wp.array(dtype=wp.spatial_vectord),
+    body_v_plus: wp.array(dtype=wp.spatial_vectord),
+    body_time: wp.array(dtype=wp.float64),
+    h: wp.float64,
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    local: wp.array(dtype=wp.vec3d),
+    particle_count: int,
+    body_count: int,
+    particle_q1: wp.array(dtype=wp.vec3d),
+    body_q1: wp.array(dtype=wp.transformd),
+    x1: wp.array(dtype=wp.vec3d),
+):
+    """The Gauss-Seidel response's plan in one launch: the particles' ends
+    (:func:`planned_position`) in the first ``P`` threads, the bodies' (:func:`planned_pose`)
+    in the next ``B``, then the vertices posed at those ends (:func:`pose_vertices_kernel`), each
+    vertex thread working out its owner's end itself (no thread waits for another's).
+    Launched over ``P + B + vertices`` threads (``P``, ``B``: ``particle_count``,
+    ``body_count``), or over ``P + B`` for the ends alone (the caller then poses the vertices
+    from them, :func:`pose_vertices_kernel`: bodies with many vertices would otherwise
+    integrate their pose once per vertex)."""
+    i = wp.tid()
+    P = particle_count
+    B = body_count
+    if i < P:
+        particle_q1[i] = planned_position(particle_q0[i], particle_q_pred[i], particle_v_minus[i], particle_v_plus[i],
+                                          particle_time[i], h)
+        return
+    if i < P + B:
+        b = i - P
+        body_q1[b] = planned_pose(body_q0[b], body_q_pred[b], body_v_minus[b], body_v_plus[b], body_time[b], h)
+        return
+    v = i - P - B
+    kind = vertex_type[v]
+    o = vertex_owner[v]
+    if kind == VERTEX_PARTICLE:
+        x1[v] = planned_position(particle_q0[o], particle_q_pred[o], particle_v_minus[o], particle_v_plus[o],
+                                 particle_time[o], h)
+    elif kind == VERTEX_BODY:
+        x1[v] = body_point(planned_pose(body_q0[o], body_q_pred[o], body_v_minus[o], body_v_plus[o], body_time[o], h),
+                           local[v])
+    else:
+        x1[v] = local[v]

@@ -5,7 +5,7 @@ import warp as wp
 from kernels.point_triangle import point_triangle_offset
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def winding_distance_kernel(
     x: wp.array(dtype=wp.vec3d),
     query_point: wp.array(dtype=wp.int32),

@@ -4,9 +4,9 @@ A simulation scene module defines ``build(builder, args)``, which adds its cloth
 colliders to a :class:`sim.builder.ModelBuilder` (the builder records the components the scene
 needs: ``cloth``, ``rigid``, ``static``), and delegates ``add_arguments`` / ``run`` to this module.
 
-Per step (``dt`` split into ``substeps``): :class:`sim.integrator.SemiImplicitIntegrator` (or,
-with ``--integrator implicit``, :class:`sim.implicit.ImplicitIntegrator`) with an
-:class:`collision.response.ImpulseCollisionHandler` as its collision hook, then one frame
+Per step (``dt`` split into ``substeps``): :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator` (or,
+with ``--integrator implicit``, :class:`sim.integrators.implicit.ImplicitIntegrator`) with an
+:class:`sim.contact.response.ImpulseCollisionHandler` as its collision hook, then one frame
 logged with :meth:`sim.recorder.SimRecorder.on_logger` (particle positions, body poses, the
 step's contacts gathered over all its substeps, metrics ``energy/{kinetic,potential,total}``,
 ``contacts`` and ``penetrations``). Penetrations come from the independent
@@ -36,8 +36,8 @@ from scenes.registry import (
     positive_float,
     positive_int,
 )
-from sim.integrator import INTEGRATORS
-from sim.rotation import quat_to_matrix
+from sim.integrators import INTEGRATORS
+from core.rotation import quat_to_matrix
 from sim.stability import SimulationDiverged  # the integrator's per-substep check raises it too
 
 PRECISIONS = ("float64",)
@@ -49,7 +49,7 @@ DEFAULT_DT = 1.0 / 60.0
 DEFAULT_SUBSTEPS = 8
 DEFAULT_DEVICE = "cpu"
 DEFAULT_COLLISION_ROUNDS = 8
-"""CCD + impulse rounds per substep (:class:`collision.response.ImpulseCollisionHandler`'s
+"""CCD + impulse rounds per substep (:class:`sim.contact.response.ImpulseCollisionHandler`'s
 ``max_iterations``); a substep still colliding after them falls back to rigid impact zones."""
 RESPONSES = ("gauss-seidel", "replayed")
 DEFAULT_RESPONSE = "replayed"
@@ -57,7 +57,7 @@ DEFAULT_RESPONSE = "replayed"
 :func:`sim.rollout.rollout` differentiates, so a scene run and a rollout of the same model take
 the same response), or projected Gauss-Seidel impulses (cheaper, but it fails the physics
 validation suite's flat drops, slopes, rest and stacks; see
-:class:`collision.response.ImpulseCollisionHandler`)."""
+:class:`sim.contact.response.ImpulseCollisionHandler`)."""
 
 BuildFn = Callable[[Any, argparse.Namespace], None]
 CCD_PRECISIONS = ("float64", "float32")
@@ -91,7 +91,7 @@ def check_ccd_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
     """Refuses (``parser.error``, exit code 2, naming the flag) CCD knob values that each flag
     accepts alone but not together, e.g. a ``--root-tolerance`` below float32's range with
     ``--ccd-precision float32``: before the run, not when the collision handler is built."""
-    from collision.response import check_ccd_options
+    from sim.contact.response import check_ccd_options
 
     try:
         check_ccd_options(ccd_options(args))
@@ -370,9 +370,9 @@ def simulate(
     """
     from tqdm import tqdm
 
-    from collision.contacts import ContactLimitExceeded
-    from collision.response import ImpulseCollisionHandler
-    from sim.integrator import make_integrator
+    from sim.contact.contacts import ContactLimitExceeded
+    from sim.contact.response import ImpulseCollisionHandler
+    from sim.integrators import make_integrator
     from sim.penetration import PenetrationChecker
     from sim.stability import DivergenceGuard, check_explicit_substep
 

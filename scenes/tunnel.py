@@ -236,13 +236,13 @@ def hit_coordinates(problem: Problem, res, step: int, t_hit):
     the narrow phase does); differentiable through the trajectory."""
     import torch
 
-    from sim.events import _coordinates, event_positions
+    from sim.events import closest_point_coordinates, event_positions
 
     xa, xb = event_positions(problem.model, [_event(problem.face, (step, step + 1))], res.particle_q, res.body_q)
     local = t_hit - step * DT
     corners = xa[0, 1:] + (local / DT) * (xb[0, 1:] - xa[0, 1:])
     point = res.particle_q[step, 0] + local * res.particle_qd[step, 0]
-    return _coordinates(torch.tensor([False]), torch.cat([point[None], corners])[None])[0]
+    return closest_point_coordinates(torch.tensor([False]), torch.cat([point[None], corners])[None])[0]
 
 
 def _event_time(problem: Problem) -> float:
@@ -479,7 +479,7 @@ def _log_tetrahedron(log: Any, problem: Problem) -> None:
     the target hit point."""
     import rerun as rr
 
-    from sim.rotation import quat_rotate
+    from core.rotation import quat_rotate
 
     _, res = _rollout(problem, problem.v_star)
     body_q = res.body_q[:, 0].detach().numpy()

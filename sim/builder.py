@@ -21,325 +21,15 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-
 import numpy as np
 import warp as wp
 
 from sim.model import COMPONENTS, Model
-from sim.rotation import quat_to_matrix
+from sim.mass_properties import VOLUME_RTOL, check_closed_oriented, lumped_masses, mesh_mass_properties
+from sim.validation import (Pinned, Vec3Like, check_nondegenerate, check_rotation, check_scalar, check_triangles,
+                            check_vec3, check_velocities, check_vertices, compact_mesh, pinned_mask)
 
-__all__ = ["MassProperties", "ModelBuilder", "mesh_mass_properties", "quat_from_matrix", "quat_to_matrix"]
-
-ROTATION_TOL = 1e-4
-"""Accepted deviation of a rotation from unit norm / orthonormality before it is re-normalised.
-Loose enough for hand-typed values such as ``(0, 0, 0.7071, 0.7071)`` (error 1e-5), tight enough to
-reject a non-rotation (e.g. an axis-angle vector or a scaled matrix)."""
-
-DEGENERATE_TRIANGLE_RTOL = 1e-12
-"""A triangle is degenerate when twice its area is at most this times its longest edge squared
-(height/longest-edge ratio below 1e-12, i.e. zero to within a few thousand ulps of float64)."""
-
-VOLUME_RTOL = 1e-12
-"""A closed mesh has zero volume when |V| is at most this times the cube of its bounding-box
-diagonal (flat or fully self-cancelling meshes)."""
-
-_Vec3Like = Sequence[float] | np.ndarray
-Pinned = Sequence[int] | np.ndarray | Callable[[int, np.ndarray], bool]
-
-
-# --------------------------------------------------------------------------------------------
-# small validation helpers (all raise ValueError naming the argument)
-# --------------------------------------------------------------------------------------------
-
-
-def _scalar(x, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
-    if isinstance(x, bool) or np.ndim(x) != 0:
-        raise ValueError(f"{name} must be a real scalar, got {x!r}")
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real scalar, got {x!r}") from None
-    if not np.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {v}")
-    if positive and not v > 0.0:
-        raise ValueError(f"{name} must be > 0, got {v}")
-    if nonnegative and not v >= 0.0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
-    return v
-
-
-def _float_array(x, name: str, shape: tuple) -> np.ndarray:
-    """float64 copy of ``x`` checked against ``shape`` (``None`` entries: any size) and finiteness."""
-    try:
-        a = np.array(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real array of shape {_shape_str(shape)}, got {x!r}") from None
-    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
-        raise ValueError(f"{name} must have shape {_shape_str(shape)}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return a
-
-
-def _shape_str(shape: tuple) -> str:
-    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
-
-
-def _vec3(x, name: str) -> np.ndarray:
-    return _float_array(x, name, (3,))
-
-
-def _vertices(x, name: str, min_count: int = 3) -> np.ndarray:
-    v = _float_array(x, name, (None, 3))
-    if len(v) < min_count:
-        raise ValueError(f"{name} needs at least {min_count} vertices, got {len(v)}")
-    return v
-
-
-def _triangles(t, n_vertices: int, name: str) -> np.ndarray:
-    try:
-        a = np.asarray(t)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an integer array of shape (T, 3)") from None
-    if a.size == 0 and a.ndim <= 2:
-        raise ValueError(f"{name} is empty: at least one triangle is needed")
-    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer)):
-        raise ValueError(f"{name} must be an integer array of shape (T, 3), got dtype {a.dtype}")
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (T, 3), got {a.shape}")
-    a = a.astype(np.int64)
-    if a.min() < 0:
-        raise ValueError(f"{name} contains negative indices (min {a.min()})")
-    if a.max() >= n_vertices:
-        raise ValueError(f"{name} index {a.max()} out of range for {n_vertices} vertices")
-    return a
-
-
-def _check_nondegenerate(v: np.ndarray, t: np.ndarray, name: str) -> np.ndarray:
-    """Twice the area of every triangle [m^2]; raises on zero-area triangles."""
-    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    longest2 = np.max(
-        np.stack([np.sum((b - a) ** 2, 1), np.sum((c - b) ** 2, 1), np.sum((a - c) ** 2, 1)]), axis=0
-    )
-    bad = np.flatnonzero(area2 <= DEGENERATE_TRIANGLE_RTOL * longest2)
-    if bad.size:
-        raise ValueError(
-            f"{name} has {bad.size} degenerate (zero-area) triangle(s), first: index {bad[0]} "
-            f"= {t[bad[0]].tolist()}"
-        )
-    return area2
-
-
-def _compact(v: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Drops vertices no triangle references (indices remapped, order kept)."""
-    used = np.zeros(len(v), dtype=bool)
-    used[t.reshape(-1)] = True
-    if used.all():
-        return v, t
-    new = np.cumsum(used) - 1
-    return v[used], new[t]
-
-
-def quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd's method)."""
-    r = np.asarray(r, dtype=np.float64)
-    tr = np.trace(r)
-    k = int(np.argmax([tr, r[0, 0], r[1, 1], r[2, 2]]))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def _rotation(rot, name: str = "rot") -> tuple[np.ndarray, np.ndarray]:
-    """(matrix (3, 3), quaternion xyzw (4,)) of ``rot``: None (identity), a quaternion or a matrix."""
-    if rot is None:
-        return np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
-    try:
-        a = None if isinstance(rot, str) else np.asarray(rot, dtype=np.float64)
-    except (TypeError, ValueError):
-        a = None
-    if a is None or a.shape not in ((4,), (3, 3)):
-        raise ValueError(
-            f"{name} must be a quaternion (x, y, z, w) of shape (4,) or a 3x3 rotation matrix, "
-            f"got shape {None if a is None else a.shape}"
-        )
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf")
-    if a.shape == (4,):
-        n = np.linalg.norm(a)
-        if abs(n - 1.0) > ROTATION_TOL:
-            raise ValueError(f"{name} quaternion (x, y, z, w) must have unit norm, got norm {n:.6g}")
-        q = a / n
-        return quat_to_matrix(q), q
-    err = np.max(np.abs(a.T @ a - np.eye(3)))
-    if err > ROTATION_TOL or np.linalg.det(a) <= 0.0:
-        raise ValueError(
-            f"{name} matrix must be a rotation (orthonormal, det +1); |R^T R - I|_max = {err:.3g}, "
-            f"det = {np.linalg.det(a):.6g}"
-        )
-    q = quat_from_matrix(a)
-    return quat_to_matrix(q), q
-
-
-def _velocities(v, n: int, name: str) -> np.ndarray:
-    """(n, 3) velocities from one shared (3,) vector or per-particle (n, 3) values."""
-    try:
-        shape = np.shape(v)
-    except ValueError:
-        raise ValueError(f"{name} must have shape (3,) or ({n}, 3)") from None
-    if shape == (3,):
-        return np.tile(_vec3(v, name), (n, 1))
-    if shape != (n, 3):
-        raise ValueError(f"{name} must have shape (3,) or ({n}, 3), got {shape}")
-    return _float_array(v, name, (n, 3))
-
-
-def _pinned_mask(pinned, positions: np.ndarray, name: str = "pinned") -> np.ndarray:
-    """Boolean (N,) mask from an index list, a boolean mask (N,) or ``pinned(i, x) -> bool``."""
-    n = len(positions)
-    if pinned is None:
-        return np.zeros(n, dtype=bool)
-    if callable(pinned):
-        return np.array([bool(pinned(i, positions[i].copy())) for i in range(n)], dtype=bool)
-    try:
-        a = np.asarray(pinned)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a 1-D list of particle indices, a boolean mask or a callable") from None
-    if a.size == 0:
-        return np.zeros(n, dtype=bool)
-    if a.dtype == bool:
-        if a.shape != (n,):
-            raise ValueError(f"{name} as a boolean mask must have shape ({n},), got {a.shape}")
-        return a.copy()
-    if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
-        raise ValueError(f"{name} must be a 1-D list of particle indices, a boolean mask or a callable")
-    if a.min() < 0 or a.max() >= n:
-        raise ValueError(f"{name} index out of range [0, {n}): min {a.min()}, max {a.max()}")
-    mask = np.zeros(n, dtype=bool)
-    mask[a] = True
-    return mask
-
-
-def _lumped_masses(v: np.ndarray, t: np.ndarray, area2: np.ndarray, density: float) -> np.ndarray:
-    """Each triangle's mass (density x area) split in thirds onto its corners [kg] (N,)."""
-    m = np.zeros(len(v))
-    share = density * 0.5 * area2 / 3.0
-    for k in range(3):
-        np.add.at(m, t[:, k], share)
-    return m
-
-
-# --------------------------------------------------------------------------------------------
-# mass properties of closed triangle meshes
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class MassProperties:
-    """Mass properties of a homogeneous solid bounded by a closed triangle mesh.
-
-    Attributes:
-        volume: [m^3] (positive for outward-oriented meshes).
-        mass: density x volume [kg].
-        com: centre of mass [m], (3,), in the mesh's frame.
-        inertia: inertia tensor about the centre of mass, mesh axes [kg m^2], (3, 3).
-        inertia_origin: inertia tensor about the mesh frame's origin [kg m^2], (3, 3)
-            (= ``inertia + mass * (|c|^2 I - c c^T)``, parallel axis theorem).
-    """
-
-    volume: float
-    mass: float
-    com: np.ndarray
-    inertia: np.ndarray
-    inertia_origin: np.ndarray
-
-
-def mesh_mass_properties(vertices: np.ndarray, triangles: np.ndarray, density: float = 1.0) -> MassProperties:
-    """Volume, mass, centre of mass and inertia of the solid enclosed by a closed mesh.
-
-    Divergence theorem on signed tetrahedra ``(r, a, b, c)``, one per triangle, with apex ``r`` the
-    vertex mean (subtracted first to limit cancellation): ``V_i = det(a, b, c) / 6`` and the second
-    moment ``int x x^T dV = det/120 (a a^T + b b^T + c c^T + s s^T)``, ``s = a + b + c`` (e.g.
-    Eberly, "Polyhedral Mass Properties (Revisited)"; Blow & Binstock, "How to find the inertia
-    tensor (or other mass properties) of a 3D solid body represented by a triangle mesh").
-    The mesh is not validated here; see :meth:`ModelBuilder.add_rigid_body` for that.
-
-    Args:
-        vertices: Positions [m], float (N, 3).
-        triangles: Outward-oriented (counter-clockwise seen from outside) indices, int (T, 3).
-        density: [kg/m^3].
-
-    Returns:
-        :class:`MassProperties`.
-
-    Raises:
-        ValueError: If the signed volume is exactly zero (NaN inputs also end here).
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    ref = v.mean(axis=0)
-    p = v - ref
-    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
-    det = np.einsum("ij,ij->i", a, np.cross(b, c))
-    volume = det.sum() / 6.0
-    s = a + b + c
-    first = (det[:, None] * s).sum(axis=0) / 24.0  # int x dV about ref
-    second = np.einsum("i,ij,ik->jk", det, a, a)
-    second += np.einsum("i,ij,ik->jk", det, b, b)
-    second += np.einsum("i,ij,ik->jk", det, c, c)
-    second += np.einsum("i,ij,ik->jk", det, s, s)
-    second /= 120.0  # int (x - ref)(x - ref)^T dV
-    if not volume != 0.0:
-        raise ValueError("vertices/triangles enclose zero volume (0 m^3): not a closed solid")
-    mass = density * volume
-    d = first / volume  # com - ref
-    cov_com = density * second - mass * np.outer(d, d)
-    cov_com = 0.5 * (cov_com + cov_com.T)
-    com = ref + d
-    inertia = np.trace(cov_com) * np.eye(3) - cov_com
-    inertia_origin = inertia + mass * (np.dot(com, com) * np.eye(3) - np.outer(com, com))
-    return MassProperties(float(volume), float(mass), com, inertia, inertia_origin)
-
-
-def _check_closed_oriented(t: np.ndarray, n: int, name: str) -> None:
-    """Every directed edge once and its reverse present: closed, 2-manifold edges, consistent winding."""
-    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    key = e[:, 0] * n + e[:, 1]
-    uniq, counts = np.unique(key, return_counts=True)
-    if np.any(counts > 1):
-        k = uniq[np.argmax(counts > 1)]
-        raise ValueError(
-            f"{name}: edge ({k // n}, {k % n}) is traversed in the same direction by "
-            f"{counts.max()} triangles: the mesh is non-manifold or inconsistently oriented"
-        )
-    rev = e[:, 1] * n + e[:, 0]
-    missing = ~np.isin(rev, uniq)
-    if np.any(missing):
-        i = np.argmax(missing)
-        raise ValueError(
-            f"{name}: the mesh is open ({int(missing.sum())} boundary edge(s), e.g. "
-            f"({e[i, 0]}, {e[i, 1]})); a rigid body needs a closed, consistently oriented surface"
-        )
-
-
-# --------------------------------------------------------------------------------------------
-# builder
-# --------------------------------------------------------------------------------------------
+__all__ = ["ModelBuilder"]
 
 
 class ModelBuilder:
@@ -353,7 +43,7 @@ class ModelBuilder:
     ``components``.
     """
 
-    def __init__(self, gravity: _Vec3Like | float = (0.0, 0.0, -9.81)) -> None:
+    def __init__(self, gravity: Vec3Like | float = (0.0, 0.0, -9.81)) -> None:
         self._gravity = np.array([0.0, 0.0, -9.81])
         self.set_gravity(gravity)
         self._components: set[str] = set()
@@ -393,12 +83,12 @@ class ModelBuilder:
         self._particle_drag = 0.0
 
     # ---------------------------------------------------------------- global settings
-    def set_gravity(self, g: _Vec3Like | float) -> None:
+    def set_gravity(self, g: Vec3Like | float) -> None:
         """Sets gravity [m/s^2]: a (3,) vector, or a scalar taken as its z component (e.g. -9.81)."""
         if np.ndim(g) == 0:
-            self._gravity = np.array([0.0, 0.0, _scalar(g, "g")])
+            self._gravity = np.array([0.0, 0.0, check_scalar(g, "g")])
         else:
-            self._gravity = _vec3(g, "g")
+            self._gravity = check_vec3(g, "g")
 
     @property
     def gravity(self) -> np.ndarray:
@@ -412,7 +102,7 @@ class ModelBuilder:
 
     @restitution.setter
     def restitution(self, value: float) -> None:
-        v = _scalar(value, "restitution", nonnegative=True)
+        v = check_scalar(value, "restitution", nonnegative=True)
         if v > 1.0:
             raise ValueError(f"restitution must be in [0, 1], got {v}")
         self._restitution = v
@@ -424,7 +114,7 @@ class ModelBuilder:
 
     @friction.setter
     def friction(self, value: float) -> None:
-        self._friction = _scalar(value, "friction", nonnegative=True)
+        self._friction = check_scalar(value, "friction", nonnegative=True)
 
     @property
     def thickness(self) -> float:
@@ -441,21 +131,21 @@ class ModelBuilder:
 
     @particle_drag.setter
     def particle_drag(self, value: float) -> None:
-        self._particle_drag = _scalar(value, "particle_drag", nonnegative=True)
+        self._particle_drag = check_scalar(value, "particle_drag", nonnegative=True)
 
     @thickness.setter
     def thickness(self, value: float) -> None:
-        self._thickness = _scalar(value, "thickness", nonnegative=True)
+        self._thickness = check_scalar(value, "thickness", nonnegative=True)
 
     def set_contact(
         self, *, restitution: float | None = None, friction: float | None = None, thickness: float | None = None
     ) -> None:
         """Sets any of restitution [0..1], friction (>= 0) and thickness [m] (>= 0), all-or-nothing."""
-        r = self._restitution if restitution is None else _scalar(restitution, "restitution", nonnegative=True)
+        r = self._restitution if restitution is None else check_scalar(restitution, "restitution", nonnegative=True)
         if r > 1.0:
             raise ValueError(f"restitution must be in [0, 1], got {r}")
-        f = self._friction if friction is None else _scalar(friction, "friction", nonnegative=True)
-        h = self._thickness if thickness is None else _scalar(thickness, "thickness", nonnegative=True)
+        f = self._friction if friction is None else check_scalar(friction, "friction", nonnegative=True)
+        h = self._thickness if thickness is None else check_scalar(thickness, "thickness", nonnegative=True)
         self._restitution, self._friction, self._thickness = r, f, h
 
     def add_component(self, name: str) -> None:
@@ -530,7 +220,7 @@ class ModelBuilder:
         return range(start, self._particle_n)
 
     def add_particle(
-        self, pos: _Vec3Like, velocity: _Vec3Like = (0.0, 0.0, 0.0), mass: float = 1.0, *, pinned: bool = False
+        self, pos: Vec3Like, velocity: Vec3Like = (0.0, 0.0, 0.0), mass: float = 1.0, *, pinned: bool = False
     ) -> int:
         """Adds one free particle (simulated with the cloth; adds the ``"cloth"`` component).
 
@@ -543,9 +233,9 @@ class ModelBuilder:
         Returns:
             The particle's index.
         """
-        p = _vec3(pos, "pos")
-        v = _vec3(velocity, "velocity")
-        m = _scalar(mass, "mass", positive=True)
+        p = check_vec3(pos, "pos")
+        v = check_vec3(velocity, "velocity")
+        m = check_scalar(mass, "mass", positive=True)
         r = self._commit_particles(p[None], v[None], np.array([0.0 if pinned else m]))
         return r.start
 
@@ -559,7 +249,7 @@ class ModelBuilder:
 
     def add_cloth_grid(
         self,
-        pos: _Vec3Like,
+        pos: Vec3Like,
         rot,
         dim_x: int,
         dim_y: int,
@@ -571,7 +261,7 @@ class ModelBuilder:
         shear_stiffness: float,
         bend_stiffness: float,
         damping: float,
-        velocity: _Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
+        velocity: Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
         pinned: Pinned = (),
     ) -> range:
         """Adds a rectangular cloth of ``dim_x x dim_y`` cells in its local x-y plane.
@@ -608,22 +298,22 @@ class ModelBuilder:
         """
         nx = self._int(dim_x, "dim_x")
         ny = self._int(dim_y, "dim_y")
-        cx = _scalar(cell_x, "cell_x", positive=True)
-        cy = _scalar(cell_y, "cell_y", positive=True)
-        p0 = _vec3(pos, "pos")
-        r, _ = _rotation(rot)
-        rho = _scalar(density, "density", positive=True)
-        ks = _scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
-        kh = _scalar(shear_stiffness, "shear_stiffness", nonnegative=True)
-        kb = _scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
-        kd = _scalar(damping, "damping", nonnegative=True)
+        cx = check_scalar(cell_x, "cell_x", positive=True)
+        cy = check_scalar(cell_y, "cell_y", positive=True)
+        p0 = check_vec3(pos, "pos")
+        r, _ = check_rotation(rot)
+        rho = check_scalar(density, "density", positive=True)
+        ks = check_scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
+        kh = check_scalar(shear_stiffness, "shear_stiffness", nonnegative=True)
+        kb = check_scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
+        kd = check_scalar(damping, "damping", nonnegative=True)
 
         i, j = np.meshgrid(np.arange(nx + 1), np.arange(ny + 1))  # (ny+1, nx+1), row j
         local = np.stack([i * cx, j * cy, np.zeros_like(i, dtype=np.float64)], axis=-1).reshape(-1, 3)
         q = p0 + local @ r.T
         n = len(q)
-        qd = _velocities(velocity, n, "velocity")
-        mask = _pinned_mask(pinned, q)
+        qd = check_velocities(velocity, n, "velocity")
+        mask = pinned_mask(pinned, q)
 
         idx = np.arange(n).reshape(ny + 1, nx + 1)
         c00, c10, c01, c11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
@@ -641,7 +331,7 @@ class ModelBuilder:
         bend = np.concatenate([pairs(idx[:, :-2], idx[:, 2:]), pairs(idx[:-2, :], idx[2:, :])])
 
         area2 = np.linalg.norm(np.cross(q[tris[:, 1]] - q[tris[:, 0]], q[tris[:, 2]] - q[tris[:, 0]]), axis=1)
-        mass = _lumped_masses(q, tris, area2, rho)
+        mass = lumped_masses(q, tris, area2, rho)
         mass[mask] = 0.0
 
         springs, rests, ks_, kd_ = [], [], [], []
@@ -664,9 +354,9 @@ class ModelBuilder:
         stretch_stiffness: float,
         bend_stiffness: float,
         damping: float,
-        velocity: _Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
+        velocity: Vec3Like | np.ndarray = (0.0, 0.0, 0.0),
         pinned: Pinned = (),
-        pos: _Vec3Like = (0.0, 0.0, 0.0),
+        pos: Vec3Like = (0.0, 0.0, 0.0),
         rot=None,
     ) -> range:
         """Adds a cloth from a triangle mesh: one particle per vertex.
@@ -693,17 +383,17 @@ class ModelBuilder:
         Returns:
             Global indices of the new particles (in vertex order).
         """
-        v = _vertices(vertices, "vertices")
-        t = _triangles(triangles, len(v), "triangles")
-        rho = _scalar(density, "density", positive=True)
-        ks = _scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
-        kb = _scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
-        kd = _scalar(damping, "damping", nonnegative=True)
-        p0 = _vec3(pos, "pos")
-        r, _ = _rotation(rot)
+        v = check_vertices(vertices, "vertices")
+        t = check_triangles(triangles, len(v), "triangles")
+        rho = check_scalar(density, "density", positive=True)
+        ks = check_scalar(stretch_stiffness, "stretch_stiffness", nonnegative=True)
+        kb = check_scalar(bend_stiffness, "bend_stiffness", nonnegative=True)
+        kd = check_scalar(damping, "damping", nonnegative=True)
+        p0 = check_vec3(pos, "pos")
+        r, _ = check_rotation(rot)
         n = len(v)
-        qd = _velocities(velocity, n, "velocity")
-        area2 = _check_nondegenerate(v, t, "triangles")
+        qd = check_velocities(velocity, n, "velocity")
+        area2 = check_nondegenerate(v, t, "triangles")
         used = np.zeros(n, dtype=bool)
         used[t.reshape(-1)] = True
         if not used.all():
@@ -736,8 +426,8 @@ class ModelBuilder:
             bend = np.unique(bend, axis=0)
 
         q = p0 + v @ r.T
-        mask = _pinned_mask(pinned, q)
-        mass = _lumped_masses(q, t, area2, rho)
+        mask = pinned_mask(pinned, q)
+        mass = lumped_masses(q, t, area2, rho)
         mass[mask] = 0.0
         rest_s, k_s, d_s = self._springs(q, stretch, ks, kd, "stretch")
         springs, rests, kk, dd = [stretch], [rest_s], [k_s], [d_s]
@@ -755,10 +445,10 @@ class ModelBuilder:
         triangles: np.ndarray,
         *,
         density: float,
-        pos: _Vec3Like = (0.0, 0.0, 0.0),
+        pos: Vec3Like = (0.0, 0.0, 0.0),
         rot=None,
-        velocity: _Vec3Like = (0.0, 0.0, 0.0),
-        angular_velocity: _Vec3Like = (0.0, 0.0, 0.0),
+        velocity: Vec3Like = (0.0, 0.0, 0.0),
+        angular_velocity: Vec3Like = (0.0, 0.0, 0.0),
     ) -> int:
         """Adds a homogeneous rigid body bounded by a closed, outward-oriented triangle mesh.
 
@@ -786,16 +476,16 @@ class ModelBuilder:
                 non-manifold or inconsistently oriented mesh, an inverted (negative volume) or
                 flat mesh, non-positive density, an invalid rotation.
         """
-        rho = _scalar(density, "density", positive=True)
-        p0 = _vec3(pos, "pos")
-        r, quat = _rotation(rot)
-        lin = _vec3(velocity, "velocity")
-        ang = _vec3(angular_velocity, "angular_velocity")
-        v = _vertices(vertices, "vertices", min_count=4)
-        t = _triangles(triangles, len(v), "triangles")
-        v, t = _compact(v, t)
-        _check_nondegenerate(v, t, "triangles")
-        _check_closed_oriented(t, len(v), "triangles")
+        rho = check_scalar(density, "density", positive=True)
+        p0 = check_vec3(pos, "pos")
+        r, quat = check_rotation(rot)
+        lin = check_vec3(velocity, "velocity")
+        ang = check_vec3(angular_velocity, "angular_velocity")
+        v = check_vertices(vertices, "vertices", min_count=4)
+        t = check_triangles(triangles, len(v), "triangles")
+        v, t = compact_mesh(v, t)
+        check_nondegenerate(v, t, "triangles")
+        check_closed_oriented(t, len(v), "triangles")
         props = mesh_mass_properties(v, t, rho)
         diag = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
         if abs(props.volume) <= VOLUME_RTOL * diag**3:
@@ -823,7 +513,7 @@ class ModelBuilder:
 
     # ---------------------------------------------------------------- static colliders
     def add_static_mesh(
-        self, vertices: np.ndarray, triangles: np.ndarray, *, pos: _Vec3Like = (0.0, 0.0, 0.0), rot=None
+        self, vertices: np.ndarray, triangles: np.ndarray, *, pos: Vec3Like = (0.0, 0.0, 0.0), rot=None
     ) -> int:
         """Adds a static (immovable) triangle mesh collider; open meshes are fine.
 
@@ -837,12 +527,12 @@ class ModelBuilder:
         Returns:
             The static mesh's index (in order of addition).
         """
-        v = _vertices(vertices, "vertices")
-        t = _triangles(triangles, len(v), "triangles")
-        p0 = _vec3(pos, "pos")
-        r, _ = _rotation(rot)
-        v, t = _compact(v, t)
-        _check_nondegenerate(v, t, "triangles")
+        v = check_vertices(vertices, "vertices")
+        t = check_triangles(triangles, len(v), "triangles")
+        p0 = check_vec3(pos, "pos")
+        r, _ = check_rotation(rot)
+        v, t = compact_mesh(v, t)
+        check_nondegenerate(v, t, "triangles")
         self._static_v.append(p0 + v @ r.T)
         self._static_f.append(t + self._static_vn)
         self._static_vn += len(v)
@@ -850,7 +540,7 @@ class ModelBuilder:
         self._components.add("static")
         return self._static_mesh_n - 1
 
-    def add_ground_plane(self, normal: _Vec3Like = (0.0, 0.0, 1.0), offset: float = 0.0) -> int:
+    def add_ground_plane(self, normal: Vec3Like = (0.0, 0.0, 1.0), offset: float = 0.0) -> int:
         """Adds a static half-space ``dot(n, x) >= offset`` (outside) as a plane only (no mesh).
 
         Args:
@@ -861,11 +551,11 @@ class ModelBuilder:
         Returns:
             The plane's index.
         """
-        n = _vec3(normal, "normal")
+        n = check_vec3(normal, "normal")
         length = np.linalg.norm(n)
         if not length > 0.0:
             raise ValueError("normal must be non-zero")
-        d = _scalar(offset, "offset")
+        d = check_scalar(offset, "offset")
         self._planes.append(np.concatenate([n / length, [d]]))
         self._components.add("static")
         return len(self._planes) - 1
@@ -892,7 +582,7 @@ class ModelBuilder:
         Returns:
             The model.
         """
-        from collision.roots import init_warp  # the project's shared, quiet wp.init()
+        from core.device import init_warp  # the project's shared, quiet wp.init()
 
         init_warp()
 

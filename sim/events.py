@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collision.roots import DEFAULT_MAX_DERIVATIVE
-from sim.rotation import quat_rotate
+from core.rotation import quat_rotate
 
 KINDS = ("vertex_face", "edge_edge")
 COORDINATE_TIME_LIMIT = 1.0e6
@@ -149,7 +149,7 @@ def event_positions(model, events, particle_q, body_q):
     return ends[0], ends[1]
 
 
-def _coordinates(kind_edge, y):
+def closest_point_coordinates(kind_edge, y):
     """Closest-point coordinates of the pair at positions y (E, 4, 3): vertex-face: barycentric
     (w1, w2, w3) of the point's projection onto the triangle's plane (inside iff all >= 0);
     edge-edge: (s_a, s_b, 0), the parameters of the two lines' closest points (overlap iff both
@@ -198,7 +198,7 @@ def event_outputs(model, events, particle_q, body_q, dt: float, max_derivative: 
     for slot in range(3):
         s = fractions[:, slot, 0].clamp(-COORDINATE_TIME_LIMIT, COORDINATE_TIME_LIMIT)
         y = x_first + s[:, None, None] * (x_last - x_first)
-        coords.append(_coordinates(kind_edge, y))
+        coords.append(closest_point_coordinates(kind_edge, y))
     return roots, torch.stack(coords, dim=1)
 
 

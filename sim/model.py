@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from sim.collision_mesh import CollisionMesh
+
 COMPONENTS = ("cloth", "rigid", "static", "self_collision")
 """What a scene can ask for; the stepper launches only the kernels and collision pairs these need."""
 
@@ -113,6 +115,16 @@ class Model:
     friction: float = 0.5
     thickness: float = 0.0
     particle_drag: float = 0.0
+    _collision_mesh: object = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def collision_mesh(self) -> CollisionMesh:
+        """The model's collidable surface (:class:`sim.collision_mesh.CollisionMesh`), built on
+        first use and shared by the collision response, the penetration checker and the
+        recorder (a scaled copy of the model builds its own)."""
+        if self._collision_mesh is None:
+            self._collision_mesh = CollisionMesh.from_model(self)
+        return self._collision_mesh
 
     def scaled(self, factor: float) -> Model:
         """The same scene with every length multiplied by ``factor`` (> 0, finite) and the

@@ -56,9 +56,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from collision.mesh import CollisionMesh
 from kernels import penetration as _k
 from sim.model import Model, State
+from core.buffers import rows
 
 __all__ = [
     "DEFAULT_TOL",
@@ -176,7 +176,7 @@ def _winding_and_distance(
     x: np.ndarray, query_point: np.ndarray, query_solid: np.ndarray, faces: np.ndarray, face_start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Runs :func:`_k.winding_distance_kernel` on the CPU; returns (winding, distance) numpy."""
-    from collision.roots import init_warp
+    from core.device import init_warp
 
     init_warp()
     n = len(query_point)
@@ -192,12 +192,6 @@ def _winding_and_distance(
     return w.numpy(), d.numpy()
 
 
-def _np(a, shape_tail: tuple, dtype=np.float64) -> np.ndarray:
-    if a is None:
-        return np.zeros((0, *shape_tail), dtype=dtype)
-    arr = a.numpy() if hasattr(a, "numpy") else np.asarray(a)
-    return np.asarray(arr, dtype=dtype).reshape(-1, *shape_tail)
-
 
 def state_positions(state: State | Mapping) -> tuple[np.ndarray, np.ndarray]:
     """``(particle_q (P, 3), body_q (B, 7))`` float64 numpy from a State or a mapping of arrays.
@@ -207,8 +201,8 @@ def state_positions(state: State | Mapping) -> tuple[np.ndarray, np.ndarray]:
             ``"particle_q"`` and ``"body_q"`` (e.g. ``State.numpy()``; missing keys are empty).
     """
     if isinstance(state, Mapping):
-        return _np(state.get("particle_q"), (3,)), _np(state.get("body_q"), (7,))
-    return _np(state.particle_q, (3,)), _np(state.body_q, (7,))
+        return rows(state.get("particle_q"), (3,)), rows(state.get("body_q"), (7,))
+    return rows(state.particle_q, (3,)), rows(state.body_q, (7,))
 
 
 # --------------------------------------------------------------------------------------------
@@ -294,7 +288,7 @@ class PenetrationChecker:
         if not (np.isfinite(tol) and tol >= 0.0):
             raise ValueError(f"tol must be finite and >= 0, got {tol}")
         self.tol = tol
-        mesh = self.mesh = CollisionMesh.from_model(model)
+        mesh = self.mesh = model.collision_mesh
         self.particle_count = P = mesh.particle_count
         self.shape_vertices = mesh.shape_local
         self.shape_body = mesh.shape_body
@@ -302,7 +296,7 @@ class PenetrationChecker:
         fo = mesh.face_offsets
         self.tris = mesh.faces[fo[0]:fo[1]]
         self.static_faces = mesh.faces[fo[2]:fo[3]] - mesh.static_offset
-        self.planes = _np(model.planes, (4,)) if model.plane_count else np.zeros((0, 4))
+        self.planes = rows(model.planes, (4,)) if model.plane_count else np.zeros((0, 4))
         self.body_count = B = mesh.body_count
         Vg = len(self.static_vertices)
         self.vertex_offsets = (0, P, mesh.static_offset, mesh.vertex_count)

@@ -59,10 +59,10 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from collision.mesh import CollisionMesh
 from sim.logging import RerunLogger
 from sim.model import Model, State
 from sim.penetration import state_positions, vertex_components
+from core.buffers import rows
 
 __all__ = ["Contacts", "SimRecorder", "default_blueprint"]
 
@@ -129,11 +129,6 @@ def default_blueprint() -> rrb.Blueprint:
         collapse_panels=True,
     )
 
-
-def _np(a, tail: tuple, dtype=np.float64) -> np.ndarray:
-    if a is None:
-        return np.zeros((0, *tail), dtype=dtype)
-    return np.asarray(a.numpy() if hasattr(a, "numpy") else a, dtype=dtype).reshape(-1, *tail)
 
 
 class SimRecorder:
@@ -222,13 +217,13 @@ class SimRecorder:
         self._contacts_seen = False
         self.particle_count = int(model.particle_count)
         self.body_count = int(model.body_count)
-        mesh = self.mesh = CollisionMesh.from_model(model)
+        mesh = self.mesh = model.collision_mesh
         fo = mesh.face_offsets
         self.tris = mesh.faces[fo[0]:fo[1]]
         used = np.zeros(self.particle_count, dtype=bool)
         used[self.tris.reshape(-1)] = True
         self.loose_particles = np.flatnonzero(~used)
-        allp = mesh.positions(_np(model.particle_q, (3,)), _np(model.body_q, (7,)))
+        allp = mesh.positions(rows(model.particle_q, (3,)), rows(model.body_q, (7,)))
         if not len(allp):
             allp = np.zeros((1, 3))
         self.bounds = (allp.min(axis=0), allp.max(axis=0))
@@ -286,7 +281,7 @@ class SimRecorder:
                 static=True,
             )
 
-        planes = _np(m.planes, (4,)) if m.plane_count else np.zeros((0, 4))
+        planes = rows(m.planes, (4,)) if m.plane_count else np.zeros((0, 4))
         centre = 0.5 * (self.bounds[0] + self.bounds[1])
         half = max(PLANE_MIN_HALF_SIZE, 2.0 * self.scene_diagonal)
         for k, pl in enumerate(planes):

@@ -1,7 +1,7 @@
 """A simulation rollout as one differentiable torch function.
 
-:func:`rollout` steps a :class:`sim.model.Model` with :class:`sim.integrator.SemiImplicitIntegrator`
-and the collision response of :class:`collision.response.ImpulseCollisionHandler` in its replayed
+:func:`rollout` steps a :class:`sim.model.Model` with :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator`
+and the collision response of :class:`sim.contact.response.ImpulseCollisionHandler` in its replayed
 form (``differentiable=True``: decisions on the host, the response's smooth map as taped Warp
 launches; design.md "Differentiating collision response: decide, then replay"). Its outputs are
 torch tensors inside one ``torch.autograd.Function`` whose backward runs the ``wp.Tape``, so
@@ -35,12 +35,13 @@ import numpy as np
 import torch
 import warp as wp
 
-from collision.contacts import ContactLimitExceeded
-from collision.response import ImpulseCollisionHandler, check_ccd_options
+from sim.contact.contacts import ContactLimitExceeded
+from sim.contact.response import ImpulseCollisionHandler, check_ccd_options
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from kernels.integrate import inverse_masses
 from sim.events import check_events, event_outputs
-from sim.integrator import SemiImplicitIntegrator, check_integrator, make_integrator
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
+from sim.integrators import check_integrator, make_integrator
 from sim.model import Model, State
 from sim.stability import DivergenceGuard, SimulationDiverged
 
@@ -321,7 +322,7 @@ class _Runner:
             self.stats["untaped_substeps"] = self.handler.untaped_substeps
             self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
             if self.handler.differentiable:
-                self.stats["largest_system"] = self.handler._replay.largest_system
+                self.stats["largest_system"] = self.handler.replay.largest_system
         return {name: np.stack([r[name] for r in record]) for name in ("particle_q", "particle_qd", "body_q", "body_qd")}
 
     def _forward_steps(self, start: State, record: list, requires_grad: bool) -> None:
@@ -486,8 +487,8 @@ def rollout(
             that merges or separates a pair clamped to ``max_derivative``, eq.
             ``orthogonal_clamping_real_side``; see :func:`collision.roots.orthogonal_clamped_jacobian`).
         integrator: "semi_implicit" (explicit springs) or "implicit" (backward Euler, CG solve
-            differentiated implicitly: :class:`sim.implicit.ImplicitIntegrator`).
-        integrator_options: the implicit integrator's options (:data:`sim.implicit.OPTIONS`:
+            differentiated implicitly: :class:`sim.integrators.implicit.ImplicitIntegrator`).
+        integrator_options: the implicit integrator's options (:data:`sim.integrators.implicit.OPTIONS`:
             ``tolerance``, ``max_iterations``, ``contact_passes``, ``max_strain_step``,
             ``max_refinements``).
         particle_mass: particle masses [kg], torch float64 (P,), finite and >= 0; None = the
@@ -498,13 +499,13 @@ def rollout(
             the model's.
         ccd_options: the knobs of the narrow phase that decides the CCD contacts
             (``precision`` "float64"/"float32", ``tolerance_scale``, ``max_iterations``,
-            ``tolerance``; see :class:`collision.response.ImpulseCollisionHandler`); None: the
+            ``tolerance``; see :class:`sim.contact.response.ImpulseCollisionHandler`); None: the
             float64 kernels as written. Decisions only: the replayed ``t*`` and its derivative
             come from the float64 root solver either way.
         on_divergence: what a diverged rollout does (a position or velocity not finite, or a
             position farther than :data:`sim.stability.BOUNDS_FACTOR` times the scene's reach
             from its centre, checked every substep; or a substep past the contact limits,
-            :class:`collision.contacts.ContactLimitExceeded`): "raise" (default) raises
+            :class:`sim.contact.contacts.ContactLimitExceeded`): "raise" (default) raises
             :class:`sim.stability.SimulationDiverged` naming the step; "return" stops there and
             returns with ``stats["diverged"] = True``, ``stats["diverged_step"]`` (the first
             step not completed) and ``stats["divergence_message"]``, every later frame holding

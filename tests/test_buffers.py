@@ -1,4 +1,4 @@
-"""RecordedLaunches (collision/buffers.py): a replayed launch computes what wp.launch does with
+"""RecordedLaunches (core/buffers.py): a replayed launch computes what wp.launch does with
 the same arguments, whatever changed since the key's last launch, and a CPU graph capture still
 records it."""
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from collision.buffers import RecordedLaunches
-from collision.roots import init_warp
+from core.buffers import RecordedLaunches
+from core.device import init_warp
 
 init_warp()
 
@@ -124,7 +124,7 @@ def test_alternating_arrays_stay_right_on_both_launch_paths():
 def test_zero_clears_through_the_host_view_and_is_recorded_by_a_cpu_capture():
     """zero(): on the CPU the array reads zeros right after; under a CPU graph capture the
     clearing is recorded (replaying the graph clears the array again)."""
-    from collision.buffers import zero
+    from core.buffers import zero
 
     counter = wp.array(np.array([5, -3], dtype=np.int32), dtype=wp.int32)
     zero(counter)
@@ -141,7 +141,7 @@ def test_arena_hands_released_squares_out_again_and_keeps_the_vectors():
     take of the call gets the same memory (a cloth's active-set repairs kept over a gigabyte of
     matrices to the end of each call before), while vectors taken since the mark stay the
     caller's."""
-    from collision.buffers import Arena
+    from core.buffers import Arena
 
     arena = Arena("cpu")
     arena.begin()

@@ -17,7 +17,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from sim.builder import ModelBuilder, mesh_mass_properties, quat_from_matrix, quat_to_matrix
+from core.rotation import quat_to_matrix
+from sim.builder import ModelBuilder
+from sim.mass_properties import mesh_mass_properties
+from core.rotation import quat_from_matrix
 from sim.mesh_io import box_mesh, icosphere
 from sim.model import Model
 

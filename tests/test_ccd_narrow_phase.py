@@ -382,7 +382,8 @@ def test_candidate_narrow_phase_equals_the_stacked_narrow_phase_and_brute_force_
     its proximity pairs are exactly the non-adjacent pairs an independent numpy distance puts
     within the limit."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(seed)
     edges = mesh_edges(faces)
@@ -444,7 +445,8 @@ def test_candidate_cover_answers_covered_calls_and_requeries_the_rest():
     within 0.45 margin of the covered ones, with the hits of fresh queries; an end moved further
     queries afresh (and still gives the same hits as mesh_ccd)."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(3)
     edges = mesh_edges(faces)
@@ -481,7 +483,8 @@ def test_ccd_after_near_with_motion_radii_tests_only_reachable_pairs_with_the_sa
     the hits of a fresh narrow phase and of mesh_ccd. A vertex moving past its radius, another
     start or a thickness falls back to every candidate, with the same hits."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(6)
     x1 = x0 + 0.3 * (x1 - x0)
@@ -550,7 +553,7 @@ def test_reachable_pairs_keep_a_contact_at_the_end_of_both_radii():
     tests only the kept pairs reports that hit; 2 r (1 + 1e-6) apart they are not kept (and
     do not touch)."""
     from collision.broad_phase import BroadPhase
-    from collision.ccd import CandidateNarrowPhase
+    from collision.narrow_phase import CandidateNarrowPhase
 
     faces = np.array([[1, 2, 3]])
     edges = np.array([[1, 2], [2, 3], [1, 3]])
@@ -577,7 +580,8 @@ def test_kept_cover_serves_later_motions_inside_its_boxes_with_the_hits_of_fresh
     end) give exactly the hits of a fresh query and of mesh_ccd; a motion beyond the slack
     queries afresh."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(5)
     edges = mesh_edges(faces)
@@ -629,7 +633,7 @@ def test_cover_outside_distance_is_exact_per_end_and_never_covers_nan():
     ``lo - x`` and ``x - hi`` over both ends and all coordinates, bit for bit (it is computed
     from ``min(x0, x1)`` and ``max(x0, x1)``, which must not round differently), 0 for ends
     inside or on the boxes, and inf for a NaN end."""
-    from collision.ccd import CandidateNarrowPhase
+    from collision.narrow_phase import CandidateNarrowPhase
 
     rng = np.random.default_rng(11)
     n = 200
@@ -667,7 +671,8 @@ def test_cover_continued_ahead_serves_the_next_substeps_of_steady_motion_with_fr
     cover of the one substep alone queries again once the motion leaves its slack; a limit below
     the motion leaves the fast vertices uncovered (a new query)."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(5)
     edges = mesh_edges(faces)
@@ -710,7 +715,8 @@ def test_candidate_ccd_with_thickness_and_a_cover_refilled_by_another_query():
     it): two still sheets 5 cm apart and a 6 cm thickness hit as in mesh_ccd, with and without
     a cover; a cover whose broad-phase buffers another query refilled is not reused."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, mesh_ccd
+    from collision.ccd import mesh_ccd
+    from collision.narrow_phase import CandidateNarrowPhase
 
     n = 6
     sheet, faces = _grid(n, 0.0, 0.5)
@@ -739,7 +745,8 @@ def test_candidate_narrow_phase_knobs_give_the_stacked_narrow_phase_of_the_same_
     iteration cap) hits exactly the pairs, at the times, of :func:`narrow_phase` with the same
     knobs on the broad phase's candidates (both in float32 from float64 positions)."""
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, narrow_phase
+    from collision.ccd import narrow_phase
+    from collision.narrow_phase import CandidateNarrowPhase
 
     x0, x1, faces = _crumpled_sheets(1)
     edges = mesh_edges(faces)
@@ -763,7 +770,7 @@ def test_candidate_narrow_phase_knobs_give_the_stacked_narrow_phase_of_the_same_
 
 def test_candidate_narrow_phase_bad_knob_is_a_value_error_naming_it():
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase
+    from collision.narrow_phase import CandidateNarrowPhase
 
     _, _, faces = _crumpled_sheets(0)
     bp = BroadPhase(faces, mesh_edges(faces), num_vertices=int(faces.max()) + 1)
@@ -775,7 +782,8 @@ def test_candidate_narrow_phase_bad_knob_is_a_value_error_naming_it():
 
 def test_float32_narrow_phase_rejects_positions_that_overflow_float32():
     from collision.broad_phase import BroadPhase, mesh_edges
-    from collision.ccd import CandidateNarrowPhase, narrow_phase
+    from collision.ccd import narrow_phase
+    from collision.narrow_phase import CandidateNarrowPhase
 
     queries = np.zeros((1, 8, 3))
     queries[0, 5, 0] = 1e300

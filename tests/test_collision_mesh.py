@@ -1,4 +1,4 @@
-"""collision.mesh.CollisionMesh: one numbering of the collidable vertices for the response, the
+"""sim.collision_mesh.CollisionMesh: one numbering of the collidable vertices for the response, the
 penetration checker and the recorder; posing on the host and by the Warp kernel.
 
 Ground truth: the builder's inputs (box corners, rotations written out with cos/sin)."""
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from collision.mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, CollisionMesh
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
+from sim.collision_mesh import CollisionMesh
 from sim.builder import ModelBuilder
 from sim.mesh_io import box_mesh
 
@@ -65,7 +66,7 @@ def test_device_pose_equals_host_positions_and_lever_arms():
 
 
 def test_response_checker_and_recorder_share_one_mesh_numbering(tmp_path):
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from sim.penetration import PenetrationChecker
     from sim.recorder import SimRecorder
 
@@ -78,7 +79,7 @@ def test_response_checker_and_recorder_share_one_mesh_numbering(tmp_path):
     x_checker = checker.positions(state)
     # the handler poses on the device (the replay's kernel), the checker on the host: the same
     # vertices in the same order, to rounding
-    x_handler = handler._pose("start", state.particle_q, state.body_q).numpy()[: handler.n_vertices]
+    x_handler = handler.detect.pose("start", state.particle_q, state.body_q).numpy()[: handler.n_vertices]
     np.testing.assert_allclose(x_handler, x_checker, rtol=0.0, atol=1e-14)
     np.testing.assert_array_equal(x_handler[: handler.shape_offset], x_checker[: handler.shape_offset])
     for mesh in (handler.mesh, recorder_mesh):

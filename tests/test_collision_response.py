@@ -10,11 +10,11 @@ import pytest
 import warp as wp
 
 from sim.builder import ModelBuilder
-from collision.response import ImpulseCollisionHandler
-from sim.integrator import SemiImplicitIntegrator
+from sim.contact.response import ImpulseCollisionHandler
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
-from sim.rotation import quat_rotate
+from core.rotation import quat_rotate
 
 wp.init()
 
@@ -105,7 +105,7 @@ def test_fast_ball_does_not_tunnel_through_a_thin_plate():
 def test_rigid_box_rests_on_ground_plane(differentiable):
     """A spinning box dropped on ``add_ground_plane()`` comes to rest on it (its vertices are
     vertex-plane contacts of the mesh pipeline); before, it fell through (z = -4.4 m after 1 s)."""
-    from sim.integrator import SemiImplicitIntegrator
+    from sim.integrators.semi_implicit import SemiImplicitIntegrator
     from sim.mesh_io import box_mesh
 
     b = ModelBuilder()
@@ -217,8 +217,8 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
     warp's arrays that allocates; the Gauss-Seidel path creates no array object at all). Ten
     steps after a warm-up are run twice from the same state (bit-identical runs): the second
     time they allocate nothing."""
-    from sim.integrator import copy_state
-    from warp._src.types import array as warp_array
+    from sim.integrators.semi_implicit import copy_state
+    warp_array = wp.array  # the class every Warp array is made by
 
     b = ModelBuilder()
     verts, tris = box_mesh(0.2)
@@ -238,7 +238,7 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
     for _ in range(60 if differentiable else 40):
         integ.step(s0, s1, 1 / 60, 8)
         s0, s1 = s1, s0
-    assert len(handler.last_times) or handler._narrow.reuses  # contacts are being handled
+    assert len(handler.last_times) or handler.detect.narrow.reuses  # contacts are being handled
     start = model.state()
     copy_state(s0, start)
     for _ in range(10):  # the sizes of these ten steps met
@@ -273,14 +273,14 @@ def test_stepping_with_collisions_allocates_no_warp_array_per_step(scene, differ
 
 def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
     """A scene whose broad-phase queries find few candidate pairs (a cloth swinging from two
-    corners over a static box) widens its cover (collision.response.COVER_SCALES): fewer
+    corners over a static box) widens its cover (sim.contact.tuning.COVER_SCALES): fewer
     queries, and the end state bit for bit that of a run whose cover keeps its narrowest
     margin (the contacts do not depend on the cover). A fresh query with many candidates
     narrows it again."""
-    import collision.response as response
+    import sim.contact.detect as detect
 
     def run(scales):
-        monkeypatch.setattr(response, "COVER_SCALES", scales)
+        monkeypatch.setattr(detect, "COVER_SCALES", scales)
         b = ModelBuilder()
         b.add_cloth_grid((-0.25, 0.0, 0.2), (np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)), 5, 5, 0.1, 0.1, density=0.2,
                          stretch_stiffness=40.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
@@ -300,19 +300,19 @@ def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
             handler.contacts += handler.last_contact_count
         return s0.particle_q.numpy(), handler
 
-    scales = response.COVER_SCALES
+    scales = detect.COVER_SCALES
     wide_q, wide = run(scales)
     narrow_q, narrow = run((1.0,))
     np.testing.assert_array_equal(wide_q, narrow_q)
     assert wide.contacts > 0 and wide.ccd_events > 0  # the cloth hits the box
-    assert wide._cover_scale == len(scales) - 1
-    assert wide._narrow.queries < 0.8 * narrow._narrow.queries, (wide._narrow.queries, narrow._narrow.queries)
+    assert wide.detect.cover_scale == len(scales) - 1
+    assert wide.detect.narrow.queries < 0.8 * narrow.detect.narrow.queries, (wide.detect.narrow.queries, narrow.detect.narrow.queries)
     # a dense query steps the scale back
-    monkeypatch.setattr(response, "COVER_SCALES", scales)
-    monkeypatch.setattr(response, "COVER_DENSE_CANDIDATES", -1)
-    x = wide._narrow.broad_phase.positions[0].numpy()
-    wide._cover(x, x + 1.0, wide.separation)
-    assert wide._cover_scale == len(scales) - 2
+    monkeypatch.setattr(detect, "COVER_SCALES", scales)
+    monkeypatch.setattr(detect, "COVER_DENSE_CANDIDATES", -1)
+    x = wide.detect.narrow.broad_phase.positions[0].numpy()
+    wide.detect.cover(x, x + 1.0, wide.separation)
+    assert wide.detect.cover_scale == len(scales) - 2
 
 
 @pytest.mark.parametrize("differentiable", [False, True])
@@ -324,7 +324,7 @@ def test_resting_contact_a_hair_beyond_the_separation_is_kept(differentiable, be
     contact that may approach until it reaches ``delta``: the particle ends at ``delta`` (a
     resting contact that rounding put a hair beyond ``delta`` keeps its load). Beyond the band
     it falls freely (the band holds nothing that is not about to touch)."""
-    from collision.response import PROXIMITY_HYSTERESIS
+    from sim.contact.tuning import PROXIMITY_HYSTERESIS
 
     assert PROXIMITY_HYSTERESIS == 1e-3
     delta, h = 1e-3, 1.0 / 480.0

@@ -1,5 +1,5 @@
 """The collision response's contact bookkeeping on the device (:mod:`kernels.contact_set`,
-:class:`collision.contacts.Contacts` / :class:`~collision.contacts.Hits`): hits in canonical
+:class:`sim.contact.contacts.Contacts` / :class:`~sim.contact.contacts.Hits`): hits in canonical
 pair order, matched to the contact set, and the set's growth rules (a pair again: the new
 geometry, the earlier time, the larger target; new pairs appended in order), each checked
 against numpy on hand-made or random rows."""
@@ -7,11 +7,9 @@ against numpy on hand-made or random rows."""
 import numpy as np
 import warp as wp
 
-from collision.contacts import Contacts, Hits
-from kernels.contact_set import (KEY_NONE, add_contacts_kernel, gather_hits_kernel, match_contacts_kernel,
-                                 owner_rows_finish_kernel,
-                                 owner_rows_kernel, owner_rows_reset_kernel, owner_times_kernel,
-                                 owner_times_reset_kernel, sort_keys_kernel)
+from sim.contact.contacts import Contacts, Hits
+from kernels.contact_set import KEY_NONE, add_contacts_kernel, gather_hits_kernel, match_contacts_kernel, sort_keys_kernel
+from kernels.active_set import owner_rows_finish_kernel, owner_rows_kernel, owner_rows_reset_kernel, owner_times_kernel, owner_times_reset_kernel
 
 wp.init()
 DEV = "cpu"
@@ -134,7 +132,7 @@ def test_owner_times_and_rows_prefer_differentiated_then_later_rows():
 
 def test_radix_sort_gives_the_heap_sorts_order():
     """Off the CPU a large detection pass is ordered by Warp's radix sort
-    (:data:`collision.response.DEVICE_SORT_MIN`): for distinct keys it must give the order of
+    (:data:`sim.contact.tuning.DEVICE_SORT_MIN`): for distinct keys it must give the order of
     the heap sort (checked here on the CPU, where both run), so the contacts are the same
     whichever sorted them."""
     rng = np.random.default_rng(1)
@@ -175,7 +173,7 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
 
     import pytest
 
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from sim.builder import ModelBuilder
     from sim.mesh_io import box_mesh
 
@@ -189,18 +187,18 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
     s1.particle_q.assign(s0.particle_q.numpy() + [0.0, 0.0, -1.0 / 240])
     s1.particle_qd.assign(s0.particle_qd.numpy())
     assert handler(s0, s1, 1.0 / 240) is not None  # the particle rests on the box: a proximity contact
-    near = handler._narrow.near_count
+    near = handler.detect.narrow.near_count
 
     def near_twice(*args, **kwargs):  # every pair the proximity test finds, reported twice
         count = near(*args, **kwargs)
-        hits = handler._narrow.hits
+        hits = handler.detect.narrow.hits
         for name in ("kind", "pairs", "offset", "weights", "vertices"):
             a = hits[name].numpy()
             a[count:2 * count] = a[:count]
             hits[name].assign(a)
         return 2 * count
 
-    handler._narrow.near_count = near_twice
+    handler.detect.narrow.near_count = near_twice
     with pytest.raises(RuntimeError, match="pair twice"):
         handler(s0, s1, 1.0 / 240)
 

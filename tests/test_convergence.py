@@ -76,7 +76,7 @@ def test_exact_ballistic_update_leaves_pinned_particles_alone():
     """A pinned particle above a ground plane stays exactly where it is under the exact
     ballistic update (the drift moves free particles only), beside a free one that falls."""
     from sim.builder import ModelBuilder
-    from sim.integrator import make_integrator
+    from sim.integrators import make_integrator
 
     b = ModelBuilder()
     b.add_particle((0.0, 0.0, 0.5), mass=1.0, pinned=True)

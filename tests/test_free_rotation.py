@@ -24,10 +24,10 @@ import warp as wp
 
 from kernels.integrate import integrate_bodies
 from sim.builder import ModelBuilder
-from sim.integrator import make_integrator
+from sim.integrators import make_integrator
 from sim.mesh_io import box_mesh
 from sim.model import Model
-from sim.rotation import quat_to_matrix
+from core.rotation import quat_to_matrix
 
 BOX_HALF = (0.1, 0.2, 0.3)
 DENSITY = 500.0

@@ -1,7 +1,7 @@
 """Impact zones on the tape: the fail-safe's momentum-conserving rigid motion as Warp kernels.
 
-The zone membership is a decision (host union-find, :class:`collision.response._ImpactZones`);
-the zone's velocities are replayed on the tape (:meth:`collision.replay.ContactReplay.zone_velocities`).
+The zone membership is a decision (host union-find, :class:`sim.contact.zones.ImpactZones`);
+the zone's velocities are replayed on the tape (:meth:`sim.contact.replay.ContactReplay.zone_velocities`).
 Checked here: the Warp motion equals a numpy reference (``_rigid_velocities``, ``pinv``) to 1e-12;
 each zone keeps its linear and angular momentum and moves rigidly (closed form, computed in this
 file); a rollout whose substeps form impact zones has gradients equal to central differences;
@@ -17,12 +17,13 @@ import torch
 import warp as wp
 
 import sim.rollout as rollout_module
-from collision.mesh import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
-from collision.response import ImpulseCollisionHandler, _ImpactZones
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC
+from sim.contact.response import ImpulseCollisionHandler
+from sim.contact.zones import ImpactZones
 from sim.builder import ModelBuilder
-from sim.integrator import SemiImplicitIntegrator
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh
-from sim.rotation import quat_to_matrix
+from core.rotation import quat_to_matrix
 
 wp.init()
 
@@ -53,14 +54,14 @@ def _random_model(seed, n_particles, n_bodies, collinear=False):
 
 
 def _rows(nodes):
-    """(types, owners) rows for :meth:`_ImpactZones.merge` from ("p"|"b"|"s", index) nodes."""
+    """(types, owners) rows for :meth:`ImpactZones.merge` from ("p"|"b"|"s", index) nodes."""
     kinds = {"p": VERTEX_PARTICLE, "b": VERTEX_BODY, "s": VERTEX_STATIC}
     return (np.array([[kinds[k] for k, _ in nodes]], dtype=np.int64),
             np.array([[i for _, i in nodes]], dtype=np.int64))
 
 
 def _zones(handler, groups):
-    zones = _ImpactZones(handler.n_particles, handler.n_bodies, handler.particle_inv_mass)
+    zones = ImpactZones(handler.n_particles, handler.n_bodies, handler.particle_inv_mass)
     for group in groups:
         zones.merge(*_rows(group))
     return zones
@@ -115,7 +116,7 @@ def _host(handler, zones, state):
 def _warp(handler, zones, state, particle_q=None, particle_qd=None, body_q=None, body_qd=None):
     pz, bz, n = zones.labels()
     m = handler.model
-    return handler._replay.zone_velocities(
+    return handler.replay.zone_velocities(
         particle_qd if particle_qd is not None else state.particle_qd,
         body_qd if body_qd is not None else state.body_qd, pz, bz, n,
         particle_q if particle_q is not None else state.particle_q,

@@ -1,4 +1,4 @@
-"""Implicit (backward-Euler) cloth: :class:`sim.implicit.ImplicitIntegrator`.
+"""Implicit (backward-Euler) cloth: :class:`sim.integrators.implicit.ImplicitIntegrator`.
 
 Ground truth: the Baraff-Witkin step assembled as a dense matrix in numpy from the model's
 springs (an independent implementation of the formula, solved by LU), central finite
@@ -9,8 +9,8 @@ import pytest
 import warp as wp
 
 from sim.builder import ModelBuilder
-from sim.implicit import ImplicitIntegrator, SolveError
-from sim.integrator import SemiImplicitIntegrator
+from sim.integrators.implicit import ImplicitIntegrator, SolveError
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 
 
 def _cloth(n=4, stiffness=200.0, damping=0.5, pinned=(0,), tilt=0.3, cell=0.1):
@@ -197,7 +197,7 @@ def test_bad_settings_and_the_iteration_cap():
         ImplicitIntegrator(model, tolerance=0.0)
     with pytest.raises(ValueError, match="max_iterations"):
         ImplicitIntegrator(model, max_iterations=0)
-    from sim.integrator import make_integrator
+    from sim.integrators import make_integrator
 
     with pytest.raises(ValueError, match="tolerance, max_iterations, contact_passes"):
         make_integrator(model, "implicit", rtol=1e-6)
@@ -330,7 +330,7 @@ def test_discarded_collision_calls_leave_no_statistics():
     """The implicit integrator's trial passes and rejected substeps run the collision stage and
     then discard it: ``save_stats`` / ``restore_stats`` put the handler's counters and the
     gatherer's contacts back exactly, so a scene's summary counts each kept call once."""
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from scenes import cloth_drop, sim_common
 
     model = sim_common.build_model(cloth_drop.build, sim_common.default_args(cloth_res=4))
@@ -364,7 +364,7 @@ def test_held_particles_keep_the_velocity_of_their_contact(surface, restitution)
     one 1/60 s step: with the contact passes (its particles held in the re-solve) it ends with the
     velocity of the contact, as without them: about +6 m/s for restitution 1 and 0 for
     restitution 0, never moving into the surface."""
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from sim.mesh_io import box_mesh
 
     ends = {}
@@ -403,7 +403,7 @@ def test_taped_step_replays_the_decided_substeps_exactly():
     """Decide, then replay: a step under a tape (halvings decided off the tape, then the decided
     substeps replayed on it, contact passes included) ends in exactly the state of the same step
     without a tape, and the statistics count the replay once."""
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from sim.mesh_io import box_mesh
 
     b = ModelBuilder()

@@ -1,4 +1,4 @@
-"""Semi-implicit Euler stepper (sim.integrator): gradients through a plane bounce, closed-form
+"""Semi-implicit Euler stepper (sim.integrators.semi_implicit): gradients through a plane bounce, closed-form
 physics, determinism.
 
 Models are built here by filling :class:`sim.model.Model` with Warp arrays directly (no builder),
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from sim.integrator import SemiImplicitIntegrator
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.model import Model, State
 
 wp.init()
@@ -587,7 +587,7 @@ def test_particle_drag_reaches_the_terminal_velocity_and_converges_first_order()
     the terminal velocity ``g / c`` as its fixed point (exact to rounding after 1600 substeps at
     ``c h = 1/48``: the distance shrinks by ``(1 + c h)^-1`` each), and its error at
     ``t = 0.5 s`` halves with the substep (first order); in both integrators."""
-    from sim.integrator import make_integrator
+    from sim.integrators import make_integrator
 
     c = 10.0
     for kind in ("semi_implicit", "implicit"):

@@ -10,7 +10,8 @@ import meshio
 import numpy as np
 import pytest
 
-from sim.builder import ModelBuilder, mesh_mass_properties
+from sim.builder import ModelBuilder
+from sim.mass_properties import mesh_mass_properties
 from sim.mesh_io import (
     MeshReadError,
     box_mesh,

@@ -171,7 +171,7 @@ def test_sliding_friction_stopping_distance_is_second_order():
     the velocities after the friction, the box stopped short by ``v0 h / 2`` (2.1e-3 m at 8
     substeps, first order), as it still does at 4 substeps, where the friction's change of
     velocity per substep exceeds the bound of a force over the substep
-    (``kernels.contact.SLIDING_HALF_STEP_LIMIT``)."""
+    (``kernels.friction.SLIDING_HALF_STEP_LIMIT``)."""
     _assert_passed(P.check_sliding_friction(response=RESPONSE, substeps=SUBSTEPS))
     for substeps in (SUBSTEPS, 16):
         (row,) = P.check_sliding_friction(response=RESPONSE, substeps=substeps)

@@ -33,7 +33,7 @@ def test_simulator_quick_start_is_one_step_of_free_fall():
     """"Simulator" block: a cloth 1 m up, a ball 2 m up, a box and the ground; one step of 1/60 s
     in 8 substeps touches nothing, so every particle and the ball fall by semi-implicit Euler's
     g h^2 (1 + ... + 8) = 36 g h^2 (h = 1/480 s) from rest."""
-    ns = run_block("from sim.builder import ModelBuilder\nfrom sim.integrator import SemiImplicitIntegrator")
+    ns = run_block("from sim.builder import ModelBuilder\nfrom sim.integrators.semi_implicit import SemiImplicitIntegrator")
     s0, s1 = ns["s0"], ns["s1"]
     drop = 36.0 * G * (1.0 / 480.0) ** 2
     q0, q1 = s0.particle_q.numpy(), s1.particle_q.numpy()

@@ -23,7 +23,7 @@ from sim.rollout import rollout
 DT = 1.0 / 60.0
 STEPS = 30
 T = STEPS * DT
-# the impulse solve's Tikhonov term (collision.replay.REGULARIZATION = 1e-8) perturbs an
+# the impulse solve's Tikhonov term (sim.contact.tuning.REGULARIZATION = 1e-8) perturbs an
 # elastic swap at that level; nothing else in the closed form is approximate
 ATOL = 1e-7
 

@@ -186,7 +186,7 @@ def test_bad_scene_input_writes_no_file(tmp_path, monkeypatch):
 def test_interrupted_run_keeps_a_readable_partial_recording(tmp_path, monkeypatch, capsys):
     """Ctrl-C during stepping: exit code 130 and the frames recorded so far stay readable."""
     from scenes.__main__ import main
-    from sim.integrator import SemiImplicitIntegrator
+    from sim.integrators.semi_implicit import SemiImplicitIntegrator
 
     real_step = SemiImplicitIntegrator.step
     calls = {"n": 0}
@@ -219,16 +219,28 @@ def test_too_few_substeps_stop_with_a_clear_error():
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_replayed_response_keeps_scenes_penetration_free(name):
     """``--response replayed`` (the exact solve that rollouts differentiate) on every scene:
-    contacts happen, the independent checker finds no penetration on any frame, energy bounded.
+    contacts happen, the independent checker finds no penetration on any frame, energy bounded,
+    and :func:`sim.rollout.rollout` of the same model reproduces the run bit for bit.
     The replayed response restores the separation at the position level (the push lifts resting
     cloth without a velocity), which adds potential energy: cloth_drop peaks at 1.012x its
     initial energy in its first 20 steps (measured), hence 1.02."""
     module = SCENES[name]
-    summary, _ = sim_common.simulate(module.build, sim_common.default_args(steps=STEPS, response="replayed"), None,
-                                     name=name, progress=False)
+    args = sim_common.default_args(steps=STEPS, response="replayed")
+    summary, _ = sim_common.simulate(module.build, args, None, name=name, progress=False)
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0
     assert summary["energy_finite"] and summary["energy_max_ratio"] <= 1.02
+    # one forward function: the differentiable rollout of the same model ends in the same bits
+    # (the summary's state_sha256 hashes the final positions and velocities)
+    import hashlib
+
+    from sim.rollout import rollout
+
+    res = rollout(sim_common.build_model(module.build, args), STEPS, args.dt, args.substeps)
+    digest = hashlib.sha256()
+    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+        digest.update(np.ascontiguousarray(getattr(res, key)[-1].detach().numpy()).tobytes())
+    assert digest.hexdigest() == summary["state_sha256"], "the scene run and rollout() differ"
 
 
 def test_grazing_scene_cli(tmp_path):
@@ -270,10 +282,10 @@ def test_float32_ccd_decisions_keep_rigid_toss_penetration_free():
     summary, _ = sim_common.simulate(rigid_toss.build, args, None, name="rigid_toss", progress=False)
     assert summary["ccd_options"] == {"precision": "float32", "max_iterations": 8}
     # and the handler's narrow phase really runs the float32 variant
-    from collision.response import ImpulseCollisionHandler
+    from sim.contact.response import ImpulseCollisionHandler
     from scenes.sim_common import build_model, ccd_options
 
-    narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args))._narrow
+    narrow = ImpulseCollisionHandler(build_model(rigid_toss.build, args), ccd_options=ccd_options(args)).detect.narrow
     assert narrow._float32 and narrow.settings.max_iterations == 8
     assert summary["contacts"] > 0
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0

@@ -20,8 +20,8 @@ import warp as wp
 
 from scenes import cloth_drop, cloth_rigid, rigid_toss, sim_common
 from sim.builder import ModelBuilder
-from collision.response import ImpulseCollisionHandler
-from sim.integrator import SemiImplicitIntegrator
+from sim.contact.response import ImpulseCollisionHandler
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
 

@@ -27,7 +27,7 @@ import warp as wp
 
 from scenes import cloth_drop, sim_common
 from sim.builder import ModelBuilder
-from sim.integrator import SemiImplicitIntegrator
+from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.rollout import rollout
 from sim.stability import DivergenceGuard, SimulationDiverged, explicit_substep_limit
 
@@ -105,15 +105,15 @@ def test_scene_stops_a_substep_past_the_contact_limits(monkeypatch, limit):
     the flags to change. The limits are lowered here so that ``cloth_drop``'s first contacts
     (step ~15) pass them: at their real values (8 hits per collision vertex, solve work 1e11)
     ``--dt 1 --integrator implicit`` stops within about 30 s instead of grinding for minutes."""
-    import collision.replay
-    import collision.response
+    import sim.contact.replay
+    import sim.contact.detect
 
     if limit == "hits":
-        monkeypatch.setattr(collision.response, "MAX_HITS_MIN", 10)
-        monkeypatch.setattr(collision.response, "MAX_HITS_PER_VERTEX", 0)
+        monkeypatch.setattr(sim.contact.detect, "MAX_HITS_MIN", 10)
+        monkeypatch.setattr(sim.contact.detect, "MAX_HITS_PER_VERTEX", 0)
         pattern = r"step \d+: \d+ contacts in one collision round of a substep, more than the limit of 10 .*--substeps.*--dt"
     else:
-        monkeypatch.setattr(collision.replay, "MAX_SOLVE_WORK", 1e3)
+        monkeypatch.setattr(sim.contact.replay, "MAX_SOLVE_WORK", 1e3)
         pattern = r"step \d+: .*MAX_SOLVE_WORK.*--substeps.*--dt"
     args = sim_common.default_args(steps=25)
     with pytest.raises(SimulationDiverged, match=pattern):

@@ -1,7 +1,7 @@
 """The collidable surface of a model, built once: :class:`CollisionMesh`.
 
 One numbering of every vertex that can touch something, shared by the collision response
-(:mod:`collision.response`), the penetration checker (:mod:`sim.penetration`) and the recorder
+(:mod:`sim.contact.response`), the penetration checker (:mod:`sim.penetration`) and the recorder
 (:mod:`sim.recorder`), after ipc-toolkit's ``CollisionMesh``:
 
 * vertices ``[0, P)``: the particles (cloth and loose particles, in the model's order);
@@ -9,9 +9,9 @@ One numbering of every vertex that can touch something, shared by the collision 
 * ``[P + S, P + S + G)``: the static meshes' vertices (world frame in ``local``).
 
 Each vertex has a type (:data:`VERTEX_PARTICLE`, :data:`VERTEX_BODY`, :data:`VERTEX_STATIC`, the
-constants of :mod:`kernels.contact`) and an owner (particle index, body index, or 0), and
+constants of :mod:`kernels.pose`) and an owner (particle index, body index, or 0), and
 :meth:`CollisionMesh.positions` / :meth:`CollisionMesh.pose` put them in the world for a state,
-on the host or with the Warp kernel :func:`kernels.contact.pose_vertices_kernel` on the model's
+on the host or with the Warp kernel :func:`kernels.pose.pose_vertices_kernel` on the model's
 device.
 """
 
@@ -23,17 +23,11 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import mesh_edges
-from kernels.contact import pose_vertices_kernel
-from sim.rotation import quat_to_matrix
+from kernels.pose import VERTEX_BODY, VERTEX_PARTICLE, VERTEX_STATIC, pose_vertices_kernel
+from core.rotation import quat_to_matrix
+from core.buffers import rows
 
-VERTEX_PARTICLE, VERTEX_BODY, VERTEX_STATIC = 0, 1, 2
 
-
-def _np(a, tail: tuple, dtype=np.float64) -> np.ndarray:
-    if a is None:
-        return np.zeros((0, *tail), dtype=dtype)
-    arr = a.numpy() if hasattr(a, "numpy") else np.asarray(a)
-    return np.asarray(arr, dtype=dtype).reshape(-1, *tail)
 
 
 FLAT_EDGE_COSINE = 1.0 - 1e-12
@@ -109,7 +103,7 @@ class CollisionMesh:
             normals point sideways.
         flat_edges: (E - E', 2) int64, the other rows of ``edges``: edges inside a flat region
             of a rigid or static surface (vertex-face contacts whose closest point lies on one
-            take the face's normal, :func:`kernels.contact.contact_geometry_kernel`).
+            take the face's normal, :func:`kernels.contact_geometry.contact_geometry_kernel`).
         flat_opposites: (E - E', 2) int64, the third vertices of the two faces of each flat edge
             (:func:`flat_edges`).
         vertex_type: (V,) int64, ``VERTEX_*``.
@@ -140,12 +134,12 @@ class CollisionMesh:
         """The collidable surface of a finalised :class:`sim.model.Model` (arrays copied to the
         host once)."""
         P, B = int(model.particle_count), int(model.body_count)
-        tris = _np(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
-        shape_vertices = _np(model.shape_vertices, (3,))
-        shape_body = _np(model.shape_vertex_body, (), np.int64)
-        shape_faces = _np(model.shape_faces, (3,), np.int64)
-        static_vertices = _np(model.static_vertices, (3,))
-        static_faces = _np(model.static_faces, (3,), np.int64)
+        tris = rows(model.tri_indices, (3,), np.int64) if model.tri_count else np.zeros((0, 3), np.int64)
+        shape_vertices = rows(model.shape_vertices, (3,))
+        shape_body = rows(model.shape_vertex_body, (), np.int64)
+        shape_faces = rows(model.shape_faces, (3,), np.int64)
+        static_vertices = rows(model.static_vertices, (3,))
+        static_faces = rows(model.static_faces, (3,), np.int64)
         S, G = len(shape_vertices), len(static_vertices)
         faces = np.concatenate([tris, shape_faces + P, static_faces + P + S]).astype(np.int64)
         T, Fs = len(tris), len(shape_faces)
@@ -221,7 +215,7 @@ class CollisionMesh:
     def pose(self, particle_q: wp.array, body_q: wp.array, x: wp.array, lever: wp.array) -> None:
         """World positions ``x`` (V,) and lever arms from the owning body's centre of mass
         ``lever`` (V,) (zero for particles and static vertices), vec3d arrays on the model's
-        device, by :func:`kernels.contact.pose_vertices_kernel` (differentiable under a tape)."""
+        device, by :func:`kernels.pose.pose_vertices_kernel` (differentiable under a tape)."""
         if not self.vertex_count:
             return
         if not hasattr(self, "_type_w"):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import host
+from core.buffers import grown_capacity, host
 
 
 class ContactLimitExceeded(RuntimeError):
@@ -48,7 +48,7 @@ class _Rows:
         """At least ``rows`` rows of room, the first :attr:`count` rows kept."""
         if rows <= self.capacity:
             return
-        capacity = max(int(rows), 2 * self.capacity, 64)
+        capacity = grown_capacity(rows, self.capacity, 64)
         for (name, dtype), size in zip(self.FIELDS, self._sizes(capacity).values()):
             new = wp.zeros(size, dtype=dtype, device=self.device)
             old = getattr(self, name, None)
@@ -94,7 +94,7 @@ class Contacts(_Rows):
 class Hits(_Rows):
     """One detection pass's hits in canonical order (:mod:`kernels.contact_set`), with their
     geometry (``toi`` [s], ``weights``, ``normals``, ``targets``: the replay's definition,
-    :func:`kernels.contact.contact_geometry_kernel`) and decisions (``row``: the pair's row in
+    :func:`kernels.contact_geometry.contact_geometry_kernel`) and decisions (``row``: the pair's row in
     the contact set or -1; ``approaching``: 0 / 1; ``source_row``: the set's row the hit
     went to). ``keys`` / ``order`` hold the sort (twice the capacity: Warp's radix sort needs
     the room)."""

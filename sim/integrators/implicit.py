@@ -5,7 +5,7 @@ Euler per substep (:mod:`kernels.implicit` has the system), so stiff or fine clo
 where semi-implicit Euler diverges. The linear system is solved matrix-free by Jacobi-
 preconditioned conjugate gradients in Warp kernels on the model's device (two scalars read
 back per iteration). Rigid bodies, planes and the collision handler run after it as after
-:class:`sim.integrator.SemiImplicitIntegrator`, with two additions for large steps with contacts
+:class:`sim.integrators.semi_implicit.SemiImplicitIntegrator`, with two additions for large steps with contacts
 (both decided off the tape, then replayed on it): particles the collision stage moved are held
 in a constrained re-solve (``contact_passes``, :meth:`ImplicitIntegrator._substep`), and a
 substep whose springs' strain grows too fast is halved (``max_strain_step``,
@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from collision.buffers import upload
-from collision.replay import active_tape, paused_tape
+from core.buffers import upload
+from core.tape import active_tape, paused_tape
 from kernels.implicit import (
     add_kernel,
     cg_direction_kernel,
@@ -46,7 +46,7 @@ from kernels.implicit import (
     strain_growth,
     sum_kernel,
 )
-from sim.integrator import SemiImplicitIntegrator, _requires_grad, copy_state
+from sim.integrators.semi_implicit import SemiImplicitIntegrator, requires_grad_of, copy_state
 from sim.model import Model, State
 
 DEFAULT_TOLERANCE = 1.0e-8
@@ -104,7 +104,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
 
     Args:
         model: the finalised Model (float64).
-        requires_grad: as for :class:`sim.integrator.SemiImplicitIntegrator`.
+        requires_grad: as for :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator`.
         tolerance: CG's relative residual (> 0).
         max_iterations: CG's iteration cap (>= 1); reaching it raises :class:`SolveError`.
         contact_passes: constrained re-solves per substep for the particles in contact (>= 0;
@@ -276,7 +276,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             for _ in range(substeps):
                 s = self._refined(s, h, 0, schedule)
         self.refinements += len(schedule) - substeps
-        requires_grad = _requires_grad(state_in) if self.requires_grad is None else bool(self.requires_grad)
+        requires_grad = requires_grad_of(state_in) if self.requires_grad is None else bool(self.requires_grad)
         if requires_grad and active_tape() is not None:
             _restore_stats(handler, stats)  # the replay's collision stages count instead
             self.total_constrained = constrained

@@ -35,8 +35,8 @@ from collections.abc import Callable
 import numpy as np
 import warp as wp
 
-from collision.buffers import host
-from collision.replay import active_tape
+from core.buffers import host
+from core.tape import active_tape
 from kernels.forces import eval_springs
 from kernels.integrate import (
     find_plane_contacts,
@@ -65,7 +65,7 @@ def copy_state(src: State, dst: State, names=("particle_q", "particle_qd", "body
                 wp.copy(b, a)
 
 
-def _requires_grad(state: State) -> bool:
+def requires_grad_of(state: State) -> bool:
     """Whether a step from ``state`` must keep every intermediate array: its arrays require
     gradients, or a ``wp.Tape`` is recording (it may differentiate w.r.t. model arrays only, and
     reused scratch arrays would be overwritten before its backward reads them)."""
@@ -186,7 +186,7 @@ class SemiImplicitIntegrator:
         if state_out is state_in or state_out.particle_q is state_in.particle_q:
             raise ValueError("state_out must not alias state_in (the tape needs both)")
         h = float(dt) / substeps
-        requires_grad = _requires_grad(state_in) if self.requires_grad is None else bool(self.requires_grad)
+        requires_grad = requires_grad_of(state_in) if self.requires_grad is None else bool(self.requires_grad)
         s = state_in
         for k in range(substeps):
             if k == substeps - 1:
@@ -308,7 +308,7 @@ class SemiImplicitIntegrator:
 
     def plane_separation(self) -> float:
         """The distance [m] particles keep from the planes: the separation of the collision
-        handler when it acts on surfaces (an :class:`collision.response.ImpulseCollisionHandler`
+        handler when it acts on surfaces (an :class:`sim.contact.response.ImpulseCollisionHandler`
         with a broad phase, also behind wrappers that keep it as ``.handler``), which every
         contact keeps and its vertex-plane rows hold the particles at; else the model's
         thickness (no handler, a handler without surfaces, or a hook that never acts)."""
@@ -345,41 +345,3 @@ class SemiImplicitIntegrator:
             outputs=[x_out, v_out],
             device=d,
         )
-
-
-INTEGRATORS = ("semi_implicit", "implicit")
-"""Particle integrators on offer: semi-implicit Euler (explicit springs) and backward Euler
-(:class:`sim.implicit.ImplicitIntegrator`)."""
-
-
-def check_integrator(kind: str, options: dict | None = None) -> None:
-    """Raises ``ValueError`` for an unknown integrator ``kind`` or options it does not take
-    (the implicit one's :data:`sim.implicit.OPTIONS`), before anything is built."""
-    options = options or {}
-    if kind == "semi_implicit":
-        unknown = sorted(set(options) - {"exact_gravity"})
-        if unknown:
-            raise ValueError(f"the semi_implicit integrator's only option is exact_gravity, got {unknown}")
-        if not isinstance(options.get("exact_gravity", False), bool):
-            raise ValueError(f"exact_gravity must be True or False, got {options['exact_gravity']!r}")
-    elif kind == "implicit":
-        from sim.implicit import OPTIONS, check_options
-
-        unknown = sorted(set(options) - set(OPTIONS))
-        if unknown:
-            raise ValueError(f"the implicit integrator's options are {', '.join(OPTIONS)}, got {unknown}")
-        check_options(**options)
-    else:
-        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {kind!r}")
-
-
-def make_integrator(model: Model, kind: str = "semi_implicit", requires_grad: bool | None = None,
-                    **options) -> SemiImplicitIntegrator:
-    """The integrator ``kind`` (one of :data:`INTEGRATORS`) for ``model``; ``options`` go to the
-    implicit one (:data:`sim.implicit.OPTIONS`), or ``exact_gravity`` to the semi-implicit one."""
-    check_integrator(kind, options)
-    if kind == "implicit":
-        from sim.implicit import ImplicitIntegrator
-
-        return ImplicitIntegrator(model, requires_grad=requires_grad, **options)
-    return SemiImplicitIntegrator(model, requires_grad=requires_grad, **options)

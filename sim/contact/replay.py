@@ -1,7 +1,7 @@
 """The taped half of the collision response: "decide, then replay" (design.md).
 
 :class:`ContactReplay` owns the Warp launches that turn the decisions of
-:class:`collision.response.ImpulseCollisionHandler` (which pairs are contacts, from which root
+:class:`sim.contact.response.ImpulseCollisionHandler` (which pairs are contacts, from which root
 slot, which contacts carry an impulse and whether they stick or slide, which contact comes first
 for each particle or body) into the new velocities and positions. Every launch here is recorded on
 the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differentiable:
@@ -15,7 +15,7 @@ the active ``wp.Tape`` (if any), so the map ``(x0, v-) -> (x1, v+)`` is differen
   transposed matrix), never iterations. Coulomb friction: all active contacts sticking (normal
   and tangential impulses in one system) when every impulse lies in its cone, else, when no
   contact could stick, all sliding (``j_n (n - mu s)`` against the slip ``s``) when none stops,
-  else a split of sticking and sliding contacts in one system (:class:`_FrictionSplit`), else
+  else a split of sticking and sliding contacts in one system (:class:`FrictionSplit`), else
   each contact's stopping impulse with the normal impulses solved again on top (which regime:
   a decision);
 * the push: the separation ``SEPARATION_RATE (delta - d)`` restored by a second solve whose
@@ -33,90 +33,50 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
-import warp._src.context as _warp_context
 
-from collision.buffers import Arena, RecordedLaunches, upload
-from collision.contacts import ContactLimitExceeded
-from kernels import contact as K
-from kernels.contact_set import active_unknowns_kernel
-
-REGULARIZATION = 1e-8
-"""Relative diagonal regularisation of the active set's matrix: redundant contacts (two
-constraints on the same relative velocity) make it singular; scaling the diagonal by
-``1 + 1e-8`` picks a bounded solution while moving velocities by ~1e-8 relative. (Measured on a
-box resting face-down with friction: 1e-10 leaves the matrix so ill-conditioned that finite
-differences of the result scatter by 100 %; 1e-8 and 1e-6 give gradients within 2e-5 and 4e-4
-of central differences at step 1e-5 and 1e-6.)"""
-
-MAX_SOLVE_WORK = 1.0e11
-"""The most work the exact impulse solves of one substep may take: the sum of ``n^3`` over its
-dense solves of ``n`` unknowns (1e11 is about 20 s on one CPU thread). Measured largest
-substeps: 3e8 in the three simulation scenes over 300 steps, 4.2e10 for a ball at 200 m/s into
-a hanging cloth, 2.4e10 for a cloth hitting a box in one implicit substep per step. A substep
-far too long for the motion (``cloth_drop`` at ``--dt 1`` with the implicit integrator: 1.2e11
-in its first heavy substep) stops with :class:`collision.contacts.ContactLimitExceeded`."""
-
-PUSH_OVERSHOOT = 100.0
-"""The push's solve (:meth:`ContactReplay._pushed`) is redone with
-:data:`PUSH_REGULARIZATION` when an impulse alone changes its own row's velocity by more than
-this many times the largest push asked for. The push's rows are every contact short of its
-separation, and near-copies of one constraint with different missing separations (a cloth
-particle near a face's edge and the neighbour face) ask for pushes no bounded impulse gives:
-with :data:`REGULARIZATION` their impulses cancel at a large scale, and a rounding error of that
-scale moved a cloth particle 0.15 m in a 2 ms substep (tens of m/s of push)."""
-
-PUSH_REGULARIZATION = 1e-2
-"""The push's relative diagonal regularisation where :data:`PUSH_OVERSHOOT` says so: a
-consistent push is met to 1 % (the next substep's push makes up the rest), an inconsistent one
-stays bounded."""
-
-
-STICKING_MAX_CONTACTS = 48
-"""Most active contacts for which a solve tries static friction as one system (three unknowns
-each, a dense solve of ``(3 n)^3``): a few resting boxes, a small draped cloth. Larger sets
-take the friction pass (each contact's stopping impulse, shared)."""
-
-FRICTION_SPLIT_ITERATIONS = 8
-"""Most solves of the frictional system while its split into sticking and sliding contacts
-changes (:meth:`_FrictionSplit.mixed`); a split that still changes, or returns to one it
-tried, gives way to the friction pass."""
-
-SLIP_REVERSAL = 1e-9
-"""A sliding contact whose slip after the solve runs against its friction direction by more than
-this [m/s] sticks instead (rounding of a slip that stopped exactly stays far below)."""
-
-
-def active_tape():
-    """The ``wp.Tape`` currently recording (None outside ``with tape:``)."""
-    runtime = _warp_context.runtime
-    return runtime.tape if runtime is not None else None
-
-
-class paused_tape:
-    """Context manager: launches inside are not recorded on the active tape (for trial solves
-    whose results are thrown away; only the final, consistent solve is replayed backwards)."""
-
-    paused: list = []
-    """The tapes paused now (innermost last): a tape exists even while none records."""
-
-    def __enter__(self):
-        self._tape = active_tape()
-        if self._tape is not None:
-            _warp_context.runtime.tape = None
-            paused_tape.paused.append(self._tape)
-        return self._tape
-
-    def __exit__(self, *exc):
-        if self._tape is not None:
-            paused_tape.paused.pop()
-            _warp_context.runtime.tape = self._tape
-        return False
-
-
-def any_tape() -> bool:
-    """Whether a ``wp.Tape`` is recording or paused (:class:`paused_tape`): arrays made now may
-    still be read by its backward (a paused trial's result can feed a later recorded launch)."""
-    return active_tape() is not None or bool(paused_tape.paused)
+from core.buffers import Arena, RecordedLaunches, upload
+from core.tape import active_tape, any_tape, paused_tape
+from core.warp_adapter import is_frozen, mark_frozen
+from sim.contact.contacts import ContactLimitExceeded
+from kernels.contact_geometry import (
+    contact_geometry_kernel,
+    contact_sides_kernel,
+    merge_contacts_kernel,
+)
+from kernels.decide import (
+    push_active_kernel,
+    push_overshoot_kernel,
+    slip_reversed_kernel,
+)
+from kernels.dense import lu_factor_kernel, lu_solve_kernel, solve_adjoint_kernel
+from kernels.friction import (
+    friction_impulses_kernel,
+    sliding_friction_half_kernel,
+    sliding_impulses_kernel,
+    slip_directions_kernel,
+)
+from kernels.integrate import time_of_impact_kernel
+from kernels.pose import pose_positions_kernel, pose_start_kernel
+from kernels.response import (
+    add_vectors_kernel,
+    contact_rhs_kernel,
+    contact_velocities_kernel,
+    delassus_kernel,
+    normal_part_kernel,
+    push_rhs_kernel,
+)
+from kernels.zones import (
+    zone_body_velocity_kernel,
+    zone_moments_kernel,
+    zone_particle_velocity_kernel,
+    zone_rigid_motion_kernel,
+    zone_select_kernel,
+    zone_sums_kernel,
+)
+from kernels.active_set import active_unknowns_kernel
+from sim.contact.friction_split import FrictionSplit
+from sim.contact.tuning import (MAX_SOLVE_WORK, PUSH_OVERSHOOT, PUSH_REGULARIZATION, REGULARIZATION, SLIP_REVERSAL,
+                                STICKING_MAX_CONTACTS)
 
 
 class ContactReplay:
@@ -132,7 +92,7 @@ class ContactReplay:
         planes: (K, 4) plane normals and offsets.
         device: Warp device.
         flat_edges, flat_opposites: (K, 2) the flat edges of rigid and static surfaces and the
-            third vertices of their two faces (:class:`collision.mesh.CollisionMesh`).
+            third vertices of their two faces (:class:`sim.collision_mesh.CollisionMesh`).
     """
 
     def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
@@ -140,7 +100,7 @@ class ContactReplay:
                  flat_opposites=None):
         self.device = device
         self.n_vertices = len(vertex_type)
-        # the flat edges (collision.mesh.flat_edges) as sorted keys lo * base + hi, for the
+        # the flat edges (sim.collision_mesh.flat_edges) as sorted keys lo * base + hi, for the
         # contact geometry's look-up (one key that matches no edge when there are none)
         self.flat_key_base = self.n_vertices + 1
         flat = np.zeros((0, 2), np.int64) if flat_edges is None else np.sort(np.asarray(flat_edges, np.int64), axis=1)
@@ -189,9 +149,9 @@ class ContactReplay:
         self._recorded = RecordedLaunches(device)  # the launches of calls without a tape
 
     # ------------------------------------------------------------------ helpers
-    def _launch(self, kernel, dim, inputs=(), outputs=(), device=None) -> None:
+    def launch(self, kernel, dim, inputs=(), outputs=(), device=None) -> None:
         """``wp.launch`` of ``kernel`` on this model's device; while no tape records or is paused,
-        through a recorded command (:class:`collision.buffers.RecordedLaunches`: Warp's argument
+        through a recorded command (:class:`core.buffers.RecordedLaunches`: Warp's argument
         packing costs more than most of these kernels on a few hundred contacts)."""
         if any_tape():
             wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
@@ -211,7 +171,7 @@ class ContactReplay:
         """An array of ``shape`` (an int or a square ``(n, n)``) / ``dtype``: fresh while a tape
         records or is paused (its backward reads every array it recorded, and a paused trial's
         result may feed a recorded launch; with a gradient array when ``grad`` and recording),
-        else the next one of this call from the arena (:class:`collision.buffers.Arena`: a
+        else the next one of this call from the arena (:class:`core.buffers.Arena`: a
         response without gradients allocates no memory once its largest sizes have been met),
         zeroed unless ``zero`` is False (the caller fills it)."""
         if any_tape():
@@ -220,7 +180,7 @@ class ContactReplay:
             return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad and self._grad())
         return self._arena.take(shape, dtype, zero)
 
-    def _zeros(self, n, dtype, shape=None):
+    def zeros(self, n, dtype, shape=None):
         return self.take(shape if shape is not None else n, dtype)
 
     def _ints(self, a, dtype=wp.int32):
@@ -230,36 +190,35 @@ class ContactReplay:
         return upload(self.take(a.shape[0], dtype, zero=False, grad=False), a.astype(np.int32))
 
     @staticmethod
-    def _or(a, empty):
+    def or_empty(a, empty):
         return a if a is not None and a.shape[0] else empty
 
     def frozen(self, a: wp.array, n: int) -> wp.array:
         """``a`` for a launch that the tape may record: a fresh copy of its first ``n`` rows
         while a tape records or is paused (``a`` is a buffer of the decisions that a later call
         overwrites, and the tape's backward reads what its launches read), else ``a`` itself."""
-        if not any_tape() or getattr(a, "_frozen", False):
+        if not any_tape() or is_frozen(a):
             return a
         out = wp.empty(max(n, 1), dtype=a.dtype, device=self.device)
         if n:
             with paused_tape():
                 wp.copy(out, a, count=n)
-        out._frozen = True  # a copy of its own: frozen() passes it on as it is
-        return out
+        return mark_frozen(out)  # a copy of its own: frozen() passes it on as it is
 
     # ------------------------------------------------------------------ stages
     def pose_start(self, particle_q, body_q):
         """World positions and lever arms of all collidable vertices (+ the dummy vertex) and the
         bodies' world inverse inertia tensors (a dummy row when there is no body), in one launch
-        (:func:`kernels.contact.pose_start_kernel`)."""
+        (:func:`kernels.pose.pose_start_kernel`)."""
         n = self.n_vertices + 1
         bodies = body_q.shape[0] if body_q is not None else 0
-        x = self._zeros(n, wp.vec3d)
-        lever = self._zeros(n, wp.vec3d)
-        inv_inertia = self._zeros(max(bodies, 1), wp.mat33d)
-        self._launch(
-            K.pose_start_kernel, dim=max(n, bodies),
-            inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
-                    self.vertex_owner, self.local, self._or(self.body_inv_inertia_body, self._no_inertia), n, bodies],
+        x = self.zeros(n, wp.vec3d)
+        lever = self.zeros(n, wp.vec3d)
+        inv_inertia = self.zeros(max(bodies, 1), wp.mat33d)
+        self.launch(
+            pose_start_kernel, dim=max(n, bodies),
+            inputs=[self.or_empty(particle_q, self.empty_vec), self.or_empty(body_q, self.empty_pose), self.vertex_type,
+                    self.vertex_owner, self.local, self.or_empty(self.body_inv_inertia_body, self._no_inertia), n, bodies],
             outputs=[x, lever, inv_inertia], device=self.device,
         )
         return x, lever, inv_inertia
@@ -267,10 +226,10 @@ class ContactReplay:
     def positions(self, particle_q, body_q):
         """World positions of all collidable vertices (+ the dummy vertex)."""
         n = self.n_vertices + 1
-        x = self._zeros(n, wp.vec3d)
-        self._launch(
-            K.pose_positions_kernel, dim=n,
-            inputs=[self._or(particle_q, self.empty_vec), self._or(body_q, self.empty_pose), self.vertex_type,
+        x = self.zeros(n, wp.vec3d)
+        self.launch(
+            pose_positions_kernel, dim=n,
+            inputs=[self.or_empty(particle_q, self.empty_vec), self.or_empty(body_q, self.empty_pose), self.vertex_type,
                     self.vertex_owner, self.local],
             outputs=[x], device=self.device,
         )
@@ -284,27 +243,27 @@ class ContactReplay:
         ``v0_p``, ``v0_b``: the velocities at the start of the substep (the forces' change
         before ``t*`` is reflected, not the change after it). ``rows``: device arrays
         (``vertices`` (vec4i), ``kind``, ``source``, ``detected`` (fraction
-        of the substep), ``plane``; :class:`collision.contacts.Hits`). ``particle_time`` /
+        of the substep), ``plane``; :class:`sim.contact.contacts.Hits`). ``particle_time`` /
         ``body_time``: device times of impact already assigned to each owner (inf for none).
         ``nearest_slot``: take the cubic's root nearest the detected fraction rather than the one
         in the ``source`` slot (for a narrow phase other than the float64 one as written, whose
         slots need not match).
         """
         c = count
-        toi = self._zeros(c, wp.float64)
-        w = self._zeros(c, wp.vec4d)
-        n = self._zeros(c, wp.vec3d)
-        target = self._zeros(c, wp.float64)
-        push = self._zeros(c, wp.float64)
+        toi = self.zeros(c, wp.float64)
+        w = self.zeros(c, wp.vec4d)
+        n = self.zeros(c, wp.vec3d)
+        target = self.zeros(c, wp.float64)
+        push = self.zeros(c, wp.float64)
         frozen = self.frozen
-        self._launch(
-            K.contact_geometry_kernel, dim=c,
+        self.launch(
+            contact_geometry_kernel, dim=c,
             inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
                     frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
                     frozen(rows["plane"], c), self.planes,
-                    self._or(v0_p, self.empty_vec), self._or(v0_b, self.empty_twist),
-                    self._or(vm_p, self.empty_vec), self._or(vc_p, self.empty_vec),
-                    self._or(vm_b, self.empty_twist), self._or(vc_b, self.empty_twist),
+                    self.or_empty(v0_p, self.empty_vec), self.or_empty(v0_b, self.empty_twist),
+                    self.or_empty(vm_p, self.empty_vec), self.or_empty(vc_p, self.empty_vec),
+                    self.or_empty(vm_b, self.empty_twist), self.or_empty(vc_b, self.empty_twist),
                     particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
                     wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys, self.flat_opposites,
@@ -318,14 +277,14 @@ class ContactReplay:
         rows (``new_index`` -1) or this round's detections, as decided per row (device int
         arrays, :func:`kernels.contact_set.add_contacts_kernel`'s; fresh while a tape records)."""
         c = count
-        out = (self._zeros(c, wp.float64), self._zeros(c, wp.float64), self._zeros(c, wp.vec4d), self._zeros(c, wp.vec3d),
-               self._zeros(c, wp.float64))
+        out = (self.zeros(c, wp.float64), self.zeros(c, wp.float64), self.zeros(c, wp.vec4d), self.zeros(c, wp.vec3d),
+               self.zeros(c, wp.float64))
         old_count = 0 if old is None else old[0].shape[0]
         if old is None:
-            old = (self._zeros(1, wp.float64), self._zeros(1, wp.float64), self._zeros(1, wp.vec4d), self._zeros(1, wp.vec3d),
-                   self._zeros(1, wp.float64))
-        self._launch(
-            K.merge_contacts_kernel, dim=c,
+            old = (self.zeros(1, wp.float64), self.zeros(1, wp.float64), self.zeros(1, wp.vec4d), self.zeros(1, wp.vec3d),
+                   self.zeros(1, wp.float64))
+        self.launch(
+            merge_contacts_kernel, dim=c,
             inputs=[*old[:4], *new[:4], old[4], new[4], new_index, keep_old_toi, keep_old_target, old_count],
             outputs=list(out), device=self.device,
         )
@@ -339,17 +298,17 @@ class ContactReplay:
         Args:
             contacts: (toi, targets, weights, normals, pushes) device arrays of the whole set (C,).
             vertices, kinds: the set's device (C,) vec4i vertex indices and int32 kinds
-                (:class:`collision.contacts.Contacts`); ``count`` = C.
+                (:class:`sim.contact.contacts.Contacts`); ``count`` = C.
             active: device int32 (C,): the contacts whose normal relative velocity must end at
                 their target (the others get no impulse; fresh while a tape records).
             lever, inv_inertia_w: start-pose lever arms and world inverse inertia tensors.
             vm_p, vm_b: the velocities before any impulse (``v-``).
             share: device (C,) friction share factors (see
-                :func:`kernels.contact.friction_impulses_kernel`); None for no friction.
+                :func:`kernels.friction.friction_impulses_kernel`); None for no friction.
             start: (particle_qd, body_qd, resting speed [m/s]): the velocities at the substep's
                 start and the approach speed below which a contact at ``t* = 0`` rests (its
                 sliding friction is a force over the substep,
-                :func:`kernels.contact.sliding_friction_half_kernel`); None: every friction
+                :func:`kernels.friction.sliding_friction_half_kernel`); None: every friction
                 impulse counts as an impulse.
 
         Returns:
@@ -357,9 +316,9 @@ class ContactReplay:
             the positions): device arrays; the normal impulses are the normal parts of the
             accepted solve's (the sticking, sliding or split one, or the last normal pass after
             the friction pass); the last pair adds the push, the separation restored at the
-            position level (:func:`kernels.contact.push_rhs_kernel`), and for a sliding or
+            position level (:func:`kernels.response.push_rhs_kernel`), and for a sliding or
             split solve half the velocity change of its sliding friction on resting contact
-            (linear, :func:`kernels.contact.sliding_friction_half_kernel`), which makes a slide
+            (linear, :func:`kernels.friction.sliding_friction_half_kernel`), which makes a slide
             to rest second order in the substep.
         """
         # without a tape, its dense matrices are scratch: the next solve of the call reuses them
@@ -380,9 +339,9 @@ class ContactReplay:
         c = count
         pairs_w = self.frozen(vertices, c)
         kinds_w = self.frozen(kinds, c)
-        sides = (self.take(c, wp.vec2i, grad=False), self._zeros(c, wp.vec2d), self._zeros(c, wp.vec3d),
-                 self._zeros(c, wp.vec3d))
-        self._launch(K.contact_sides_kernel, dim=c,
+        sides = (self.take(c, wp.vec2i, grad=False), self.zeros(c, wp.vec2d), self.zeros(c, wp.vec3d),
+                 self.zeros(c, wp.vec3d))
+        self.launch(contact_sides_kernel, dim=c,
                   inputs=[pairs_w, kinds_w, weights, self.vertex_type, self.vertex_owner, lever],
                   outputs=list(sides), device=self.device)
         # the active contacts as unknowns, in row order (a decision: off the tape)
@@ -390,7 +349,7 @@ class ContactReplay:
         cu = self.take(c, wp.int32, zero=False, grad=False)
         unknown_count = self.take(1, wp.int32, zero=False, grad=False)
         with paused_tape():
-            self._launch(active_unknowns_kernel, dim=1, inputs=[c, active], outputs=[uc, cu, unknown_count],
+            self.launch(active_unknowns_kernel, dim=1, inputs=[c, active], outputs=[uc, cu, unknown_count],
                       device=self.device)
         n_u = int(unknown_count.numpy()[0])
         masses = (self.particle_inv_mass, self.body_inv_mass, inv_inertia_w)
@@ -403,34 +362,34 @@ class ContactReplay:
             # the positions by half its velocity change (a constant force over the substep)
             if start is None:
                 return vp, vb, normal, pushed(vp, vb)
-            half = self._zeros(c, wp.vec3d)
-            self._launch(K.sliding_friction_half_kernel, dim=c,
+            half = self.zeros(c, wp.vec3d)
+            self.launch(sliding_friction_half_kernel, dim=c,
                          inputs=[total, normals, slip, contacts[0], pairs_w, weights, self.vertex_type,
-                                 self.vertex_owner, lever, *sides, *masses, self._or(start[0], self.empty_vec),
-                                 self._or(start[1], self.empty_twist), wp.float64(start[2])],
+                                 self.vertex_owner, lever, *sides, *masses, self.or_empty(start[0], self.empty_vec),
+                                 self.or_empty(start[1], self.empty_twist), wp.float64(start[2])],
                          outputs=[half], device=self.device)
             linear = (masses[0], masses[1], self._translation_only)
             return vp, vb, normal, self._apply(half, pairs_w, weights, sides, linear, *pushed(vp, vb))
 
         if not n_u:
-            return vm_p, vm_b, self._zeros(c, wp.vec3d), pushed(vm_p, vm_b)
+            return vm_p, vm_b, self.zeros(c, wp.vec3d), pushed(vm_p, vm_b)
         self.largest_system = max(self.largest_system, n_u)
-        matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
-        self._launch(K.delassus_kernel, dim=(n_u, n_u),
-                  inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
-                          wp.float64(REGULARIZATION)],
+        matrix = self.zeros(0, wp.float64, shape=(n_u, n_u))
+        self.launch(delassus_kernel, dim=(n_u, n_u),
+                  inputs=[uc, pairs_w, weights, normals, normals, wp.float64(0.0), self.vertex_type, self.vertex_owner,
+                          *sides, *masses, wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
         factors = self._factor(matrix)
 
         def normal_pass(vp, vb):
             # normal impulses that bring every active contact's normal velocity to its target
-            rhs = self._zeros(n_u, wp.float64)
-            self._launch(K.contact_rhs_kernel, dim=n_u,
+            rhs = self.zeros(n_u, wp.float64)
+            self.launch(contact_rhs_kernel, dim=n_u,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                              self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist)],
                       outputs=[rhs], device=self.device)
             solution = self._dense_solve(matrix, rhs, factors)
-            normal = self._zeros(c, wp.vec3d)
+            normal = self.zeros(c, wp.vec3d)
             return normal, self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, normal))
 
         def refined_pass(vp, vb):
@@ -448,7 +407,7 @@ class ContactReplay:
             # solved jointly (normal target, no slip); taken when every impulse lies in its
             # friction cone (a decision, like the active set), else all sliding, then a split of
             # the two, else the friction pass below
-            split = _FrictionSplit(self, uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
+            split = FrictionSplit(self, uc, cu, c, n_u, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b)
             sticking = split.sticking(normal)
             if sticking is not None:
                 return (*sticking, pushed(sticking[0], sticking[1]))  # no contact slides
@@ -467,11 +426,11 @@ class ContactReplay:
         if share is not None and self.friction > 0.0:
             # Coulomb friction from the normal impulses, then the normal impulses again on top of
             # the friction (a rigid body's friction impulse changes its normal velocities too)
-            friction = self._zeros(c, wp.vec3d)
-            self._launch(K.friction_impulses_kernel, dim=c,
+            friction = self.zeros(c, wp.vec3d)
+            self.launch(friction_impulses_kernel, dim=c,
                       inputs=[normal, share, pairs_w, weights, normals, self.vertex_type,
-                              self.vertex_owner, lever, *sides, *masses, self._or(vp, self.empty_vec),
-                              self._or(vb, self.empty_twist), wp.float64(self.friction)],
+                              self.vertex_owner, lever, *sides, *masses, self.or_empty(vp, self.empty_vec),
+                              self.or_empty(vb, self.empty_twist), wp.float64(self.friction)],
                       outputs=[friction], device=self.device)
             vp_f, vb_f = self._apply(friction, pairs_w, weights, sides, masses, vm_p, vm_b)
             normal, (vp, vb) = refined_pass(vp_f, vb_f)
@@ -480,80 +439,80 @@ class ContactReplay:
     def _pushed(self, active, c: int, pushes, pairs_w, weights, normals, sides, masses, lever, vp, vb):
         """The velocities that move the positions: ``vp``, ``vb`` (after the impulses) plus the
         push, the separation restored at the position level. Its unknowns are the active
-        contacts and those still short of their push (:func:`kernels.contact.push_active_kernel`,
+        contacts and those still short of their push (:func:`kernels.decide.push_active_kernel`,
         a decision); their normal impulses bring each one's normal velocity up to its push
-        (:func:`kernels.contact.push_rhs_kernel`); they never reach the velocities."""
+        (:func:`kernels.response.push_rhs_kernel`); they never reach the velocities."""
         flags = self.take(c, wp.int32, zero=False, grad=False)
         uc = self.take(c, wp.int32, zero=False, grad=False)
         cu = self.take(c, wp.int32, zero=False, grad=False)
         count = self.take(1, wp.int32, zero=False, grad=False)
         with paused_tape():
-            self._launch(K.push_active_kernel, dim=c,
+            self.launch(push_active_kernel, dim=c,
                       inputs=[active, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                              self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist)],
                       outputs=[flags], device=self.device)
-            self._launch(active_unknowns_kernel, dim=1, inputs=[c, flags], outputs=[uc, cu, count], device=self.device)
+            self.launch(active_unknowns_kernel, dim=1, inputs=[c, flags], outputs=[uc, cu, count], device=self.device)
         n = int(count.numpy()[0])
         if not n:
             return vp, vb
-        rhs = self._zeros(n, wp.float64)
-        self._launch(K.push_rhs_kernel, dim=n,
+        rhs = self.zeros(n, wp.float64)
+        self.launch(push_rhs_kernel, dim=n,
                   inputs=[uc, pairs_w, weights, normals, pushes, self.vertex_type, self.vertex_owner, lever,
-                          self._or(vp, self.empty_vec), self._or(vb, self.empty_twist)],
+                          self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist)],
                   outputs=[rhs], device=self.device)
         for regularization in (REGULARIZATION, PUSH_REGULARIZATION):
-            matrix = self._zeros(0, wp.float64, shape=(n, n))
-            self._launch(K.delassus_kernel, dim=(n, n),
-                      inputs=[uc, pairs_w, weights, normals, self.vertex_type, self.vertex_owner, *sides, *masses,
-                              wp.float64(regularization)],
+            matrix = self.zeros(0, wp.float64, shape=(n, n))
+            self.launch(delassus_kernel, dim=(n, n),
+                      inputs=[uc, pairs_w, weights, normals, normals, wp.float64(0.0), self.vertex_type,
+                              self.vertex_owner, *sides, *masses, wp.float64(regularization)],
                       outputs=[matrix], device=self.device)
             solution = self._dense_solve(matrix, rhs)
             overshoot = self.take(1, wp.int32, grad=False)
             with paused_tape():
-                self._launch(K.push_overshoot_kernel, dim=n, inputs=[matrix, rhs, solution, wp.float64(PUSH_OVERSHOOT)],
+                self.launch(push_overshoot_kernel, dim=n, inputs=[matrix, rhs, solution, wp.float64(PUSH_OVERSHOOT)],
                              outputs=[overshoot], device=self.device)
             if not int(overshoot.numpy()[0]):
                 break
-        return self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, self._zeros(c, wp.vec3d)))
+        return self._apply(None, pairs_w, weights, sides, masses, vp, vb, (cu, solution, normals, self.zeros(c, wp.vec3d)))
 
     def _sliding(self, uc, cu, c: int, n_u: int, contacts, pairs_w, weights, sides, masses, lever, vm_p, vm_b,
                  vp_n, vb_n):
         """Every active contact sliding: one unknown each, the normal impulse ``j_n``, whose
         impulse ``j_n (n - mu s)`` carries Coulomb friction against the slip direction ``s`` of
         the velocities after the normal pass (``vp_n``, ``vb_n``;
-        :func:`kernels.contact.slip_directions_kernel`), solved exactly for the normal targets
+        :func:`kernels.friction.slip_directions_kernel`), solved exactly for the normal targets
         (and refined, as the normal passes). Returns ``(particle_qd, body_qd, normal
         impulses)`` as :meth:`solve` followed by the whole impulses and the slip directions, or
         None when a contact pulls or stops slipping (its slip turns back: it sticks)."""
         _, targets, _, normals, _ = contacts
-        directions = self._zeros(c, wp.vec3d)
-        self._launch(K.slip_directions_kernel, dim=c,
+        directions = self.zeros(c, wp.vec3d)
+        self.launch(slip_directions_kernel, dim=c,
                   inputs=[pairs_w, weights, normals, self.vertex_type, self.vertex_owner, lever,
-                          self._or(vp_n, self.empty_vec), self._or(vb_n, self.empty_twist)],
+                          self.or_empty(vp_n, self.empty_vec), self.or_empty(vb_n, self.empty_twist)],
                   outputs=[directions], device=self.device)
-        matrix = self._zeros(0, wp.float64, shape=(n_u, n_u))
+        matrix = self.zeros(0, wp.float64, shape=(n_u, n_u))
         mu = wp.float64(self.friction)
-        self._launch(K.sliding_delassus_kernel, dim=(n_u, n_u),
+        self.launch(delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
                           *masses, wp.float64(REGULARIZATION)],
                   outputs=[matrix], device=self.device)
-        vp, vb, total = self._refined_impulses(matrix, n_u, K.contact_rhs_kernel, K.sliding_impulses_kernel,
+        vp, vb, total = self.refined_impulses(matrix, n_u, contact_rhs_kernel, sliding_impulses_kernel,
                                                (directions, mu), uc, cu, c, pairs_w, weights, normals, targets, sides,
                                                masses, lever, vm_p, vm_b)
         rejected = self.take(1, wp.int32, grad=False)
         with paused_tape():
-            self._launch(K.slip_reversed_kernel, dim=c,
+            self.launch(slip_reversed_kernel, dim=c,
                       inputs=[total, normals, directions, cu, pairs_w, weights, self.vertex_type, self.vertex_owner,
-                              lever, self._or(vp, self.empty_vec), self._or(vb, self.empty_twist),
+                              lever, self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist),
                               wp.float64(SLIP_REVERSAL)],
                       outputs=[rejected], device=self.device)
         if int(rejected.numpy()[0]):
             return None
-        normal = self._zeros(c, wp.vec3d)
-        self._launch(K.normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
+        normal = self.zeros(c, wp.vec3d)
+        self.launch(normal_part_kernel, dim=c, inputs=[total, normals], outputs=[normal], device=self.device)
         return vp, vb, normal, total, directions
 
-    def _refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
+    def refined_impulses(self, matrix, rows: int, rhs_kernel, impulse_kernel, impulse_args, uc, cu, c: int,
                           pairs_w, weights, normals, targets, sides, masses, lever, vp, vb, rhs_args=()):
         """The impulses of a system ``matrix`` (``rows`` equations from ``rhs_kernel``, impulses per contact
         from ``impulse_kernel`` with ``impulse_args`` after the solution and the normals; ``rhs_args``
@@ -563,14 +522,14 @@ class ContactReplay:
         total = None
         factors = self._factor(matrix)
         for _ in range(2):
-            rhs = self._zeros(rows, wp.float64)
-            self._launch(rhs_kernel, dim=rows,
+            rhs = self.zeros(rows, wp.float64)
+            self.launch(rhs_kernel, dim=rows,
                       inputs=[uc, pairs_w, weights, normals, targets, self.vertex_type, self.vertex_owner, lever,
-                              self._or(vp, self.empty_vec), self._or(vb, self.empty_twist), *rhs_args],
+                              self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist), *rhs_args],
                       outputs=[rhs], device=self.device)
             solution = self._dense_solve(matrix, rhs, factors)
-            impulses = self._zeros(c, wp.vec3d)
-            self._launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
+            impulses = self.zeros(c, wp.vec3d)
+            self.launch(impulse_kernel, dim=c, inputs=[cu, solution, normals, *impulse_args], outputs=[impulses],
                       device=self.device)
             vp, vb = self._apply(impulses, pairs_w, weights, sides, masses, vp, vb)
             total = impulses if total is None else self._sum(total, impulses, c)
@@ -578,39 +537,39 @@ class ContactReplay:
 
     def _sum(self, a, b, count: int):
         """``a + b`` of two (count,) vec3 arrays into a fresh one."""
-        out = self._zeros(count, wp.vec3d)
-        self._launch(K.add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
+        out = self.zeros(count, wp.vec3d)
+        self.launch(add_vectors_kernel, dim=count, inputs=[a, b], outputs=[out], device=self.device)
         return out
 
     def _apply(self, impulses, pairs_w, weights, sides, masses, vp, vb, solved=None):
         """Velocities after the contact ``impulses`` (C,) (fresh arrays;
-        :func:`kernels.contact.contact_velocities_kernel`), or with ``solved`` = (contact
+        :func:`kernels.response.contact_velocities_kernel`), or with ``solved`` = (contact
         unknowns, solution, normals, normal impulses out) after the solved normal impulses, which
         are written to the last array."""
         p_count = vp.shape[0] if vp is not None else 0
         b_count = vb.shape[0] if vb is not None else 0
         c = impulses.shape[0] if solved is None else solved[3].shape[0]
-        out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
-        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
+        out_p = self.zeros(p_count, wp.vec3d) if p_count else self._unused_vec
+        out_b = self.zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
         unknowns, solution, normals, normal = solved if solved is not None else \
             (self._no_int, self._no_float, self.empty_vec, self._unused_impulses)
-        self._launch(K.contact_velocities_kernel, dim=c + p_count + b_count,
+        self.launch(contact_velocities_kernel, dim=c + p_count + b_count,
                   inputs=[c, p_count, int(solved is not None), unknowns, solution, normals,
                           impulses if impulses is not None else self.empty_vec, pairs_w, weights, self.vertex_type,
-                          self.vertex_owner, *sides, *masses, self._or(vp, self.empty_vec),
-                          self._or(vb, self.empty_twist)],
+                          self.vertex_owner, *sides, *masses, self.or_empty(vp, self.empty_vec),
+                          self.or_empty(vb, self.empty_twist)],
                   outputs=[normal, out_p, out_b], device=self.device)
         return (out_p if p_count else vp), (out_b if b_count else vb)
 
     def _factor(self, matrix):
-        """The LU factors of a square system ``matrix`` (:func:`kernels.contact.lu_factor_kernel`;
+        """The LU factors of a square system ``matrix`` (:func:`kernels.dense.lu_factor_kernel`;
         a solve's refinement pass reuses them), with a slot for the factors of its transpose,
         which the backward passes of the solves that share them make once."""
         n = matrix.shape[0]
         work = self.take((n, n), wp.float64, zero=False, grad=False)
         pivots = self.take(n, wp.int32, zero=False, grad=False)
         with paused_tape():  # the solve's implicit adjoint stands for it (:meth:`_dense_solve`)
-            self._launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
+            self.launch(lu_factor_kernel, dim=1, inputs=[matrix, 0], outputs=[work, pivots], device=self.device)
         return work, pivots, []
 
     def _dense_solve(self, matrix, rhs, factors=None):
@@ -623,9 +582,9 @@ class ContactReplay:
                 f"the exact impulse solves of one substep exceed the work limit MAX_SOLVE_WORK = {MAX_SOLVE_WORK:.0e} "
                 f"(sum of n^3 over solves of n unknowns; this one has {n}): the substep is far too long for the motion")
         work, pivots, transposed = factors if factors is not None else self._factor(matrix)
-        solution = self._zeros(n, wp.float64)
+        solution = self.zeros(n, wp.float64)
         with paused_tape():  # not differentiated by the tape: the implicit adjoint is recorded below
-            self._launch(K.lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
+            self.launch(lu_solve_kernel, dim=1, inputs=[work, pivots, rhs], outputs=[solution], device=self.device)
         tape = active_tape()
         if tape is not None:
             device = self.device
@@ -634,11 +593,11 @@ class ContactReplay:
                 if not transposed:  # the first of the solves sharing these factors to run backwards
                     transposed.extend((wp.empty((n, n), dtype=wp.float64, device=device),
                                        wp.empty(n, dtype=wp.int32, device=device)))
-                    wp.launch(K.lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=transposed, device=device)
+                    wp.launch(lu_factor_kernel, dim=1, inputs=[matrix, 1], outputs=transposed, device=device)
                 adjoint = wp.zeros(n, dtype=wp.float64, device=device)
-                wp.launch(K.lu_solve_kernel, dim=1, inputs=[*transposed, solution.grad], outputs=[adjoint],
+                wp.launch(lu_solve_kernel, dim=1, inputs=[*transposed, solution.grad], outputs=[adjoint],
                           device=device)
-                wp.launch(K.solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
+                wp.launch(solve_adjoint_kernel, dim=(n, n), inputs=[adjoint, solution],
                           outputs=[matrix.grad, rhs.grad], device=device)
 
             tape.record_func(backward, [matrix, rhs, solution])
@@ -650,12 +609,12 @@ class ContactReplay:
         ``zone_v*`` (:meth:`zone_velocities`), the others keep ``moving_*`` (their push)."""
         p_count = moving_p.shape[0] if moving_p is not None else 0
         b_count = moving_b.shape[0] if moving_b is not None else 0
-        out_p = self._zeros(p_count, wp.vec3d) if p_count else self._unused_vec
-        out_b = self._zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
-        self._launch(K.zone_select_kernel, dim=p_count + b_count,
+        out_p = self.zeros(p_count, wp.vec3d) if p_count else self._unused_vec
+        out_b = self.zeros(b_count, wp.spatial_vectord) if b_count else self._unused_twist
+        self.launch(zone_select_kernel, dim=p_count + b_count,
                   inputs=[p_count, self.frozen(zone_p, p_count), self.frozen(zone_b, b_count),
-                          self._or(moving_p, self.empty_vec), self._or(moving_b, self.empty_twist),
-                          self._or(zone_vp, self.empty_vec), self._or(zone_vb, self.empty_twist)],
+                          self.or_empty(moving_p, self.empty_vec), self.or_empty(moving_b, self.empty_twist),
+                          self.or_empty(zone_vp, self.empty_vec), self.or_empty(zone_vb, self.empty_twist)],
                   outputs=[out_p, out_b], device=self.device)
         return (out_p if p_count else moving_p), (out_b if b_count else moving_b)
 
@@ -669,9 +628,9 @@ class ContactReplay:
         start positions ``particle_q`` / ``body_q``, the velocities ``vp`` / ``vb``, the inverse
         masses and the body masses and inertias: each zone's total mass, linear momentum and, about
         its centre of mass, angular momentum and inertia tensor are summed
-        (:func:`kernels.contact.zone_sums_kernel`, :func:`kernels.contact.zone_moments_kernel`),
+        (:func:`kernels.zones.zone_sums_kernel`, :func:`kernels.zones.zone_moments_kernel`),
         ``linear = momentum / mass`` and ``omega = pinv(inertia) angular momentum``
-        (:func:`kernels.contact.zone_rigid_motion_kernel`, the pseudo-inverse for zones of
+        (:func:`kernels.zones.zone_rigid_motion_kernel`, the pseudo-inverse for zones of
         collinear particles), and each member moves with ``linear + omega x r`` (bodies: that at
         the centre of mass, and ``omega``). Momentum and angular momentum of each zone are kept.
         """
@@ -684,39 +643,39 @@ class ContactReplay:
         if not (in_p or in_b):
             return vp, vb
         pz, bz = self._ints(particle_zone), self._ints(body_zone)
-        xp = self._or(particle_q, self.empty_vec)
-        vp_in = self._or(vp, self.empty_vec)
-        bq = self._or(body_q, self.empty_pose)
-        vb_in = self._or(vb, self.empty_twist)
-        b_mass = self._or(body_mass, self.body_inv_mass)  # any float64 array when there is no body
-        b_inertia = self._or(body_inertia, self._zeros(1, wp.mat33d))
+        xp = self.or_empty(particle_q, self.empty_vec)
+        vp_in = self.or_empty(vp, self.empty_vec)
+        bq = self.or_empty(body_q, self.empty_pose)
+        vb_in = self.or_empty(vb, self.empty_twist)
+        b_mass = self.or_empty(body_mass, self.body_inv_mass)  # any float64 array when there is no body
+        b_inertia = self.or_empty(body_inertia, self.zeros(1, wp.mat33d))
         nz = max(int(n_zones), 1)
-        centre, linear, omega = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
+        centre, linear, omega = self.zeros(nz, wp.vec3d), self.zeros(nz, wp.vec3d), self.zeros(nz, wp.vec3d)
         if n_zones:
-            mass, first, momentum = self._zeros(nz, wp.float64), self._zeros(nz, wp.vec3d), self._zeros(nz, wp.vec3d)
-            angular, inertia = self._zeros(nz, wp.vec3d), self._zeros(nz, wp.mat33d)
+            mass, first, momentum = self.zeros(nz, wp.float64), self.zeros(nz, wp.vec3d), self.zeros(nz, wp.vec3d)
+            angular, inertia = self.zeros(nz, wp.vec3d), self.zeros(nz, wp.mat33d)
             members = [p_count, pz, bz, xp, vp_in, self.particle_inv_mass, bq, vb_in, b_mass]
-            self._launch(K.zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
+            self.launch(zone_sums_kernel, dim=p_count + b_count, inputs=members, outputs=[mass, first, momentum],
                       device=self.device)
-            self._launch(K.zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
+            self.launch(zone_moments_kernel, dim=p_count + b_count, inputs=[*members, b_inertia, mass, first],
                       outputs=[angular, inertia], device=self.device)
-            self._launch(K.zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
+            self.launch(zone_rigid_motion_kernel, dim=nz, inputs=[mass, first, momentum, angular, inertia],
                       outputs=[centre, linear, omega], device=self.device)
         out_p, out_b = vp, vb
         if in_p:
-            out_p = self._zeros(p_count, wp.vec3d)
-            self._launch(K.zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
+            out_p = self.zeros(p_count, wp.vec3d)
+            self.launch(zone_particle_velocity_kernel, dim=p_count, inputs=[pz, xp, centre, linear, omega, vp],
                       outputs=[out_p], device=self.device)
         if in_b:
-            out_b = self._zeros(b_count, wp.spatial_vectord)
-            self._launch(K.zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
+            out_b = self.zeros(b_count, wp.spatial_vectord)
+            self.launch(zone_body_velocity_kernel, dim=b_count, inputs=[bz, bq, centre, linear, omega, vb],
                       outputs=[out_b], device=self.device)
         return out_p, out_b
 
     def integrate(self, x0p, x_pred, vm_p, vp, moving_p, bq0, bq_pred, vm_b, vb, moving_b, particle_owner, body_owner,
                   toi, h):
         """Time-of-impact integration of particles and bodies in one launch
-        (:func:`kernels.contact.time_of_impact_kernel`; owner contact rows: device int32 arrays,
+        (:func:`kernels.integrate.time_of_impact_kernel`; owner contact rows: device int32 arrays,
         fresh while a tape records; -1: the prediction stays; -2: an impact zone's rigid motion
         over the whole substep): ``v-`` (``vm_*``) until the owner's ``t*``, ``v+`` (``vp``,
         ``vb``) after it, and the push (``moving_* - v+``) as a displacement over the whole
@@ -724,135 +683,17 @@ class ContactReplay:
         model without particles / bodies."""
         p_count = x0p.shape[0] if x0p is not None else 0
         b_count = bq0.shape[0] if bq0 is not None else 0
-        xp = self._zeros(p_count, wp.vec3d) if p_count else None
-        bq = self._zeros(b_count, wp.transformd) if b_count else None
+        xp = self.zeros(p_count, wp.vec3d) if p_count else None
+        bq = self.zeros(b_count, wp.transformd) if b_count else None
         if p_count + b_count:
-            self._launch(K.time_of_impact_kernel, dim=p_count + b_count,
-                      inputs=[p_count, self._or(x0p, self.empty_vec), self._or(x_pred, self.empty_vec),
-                              self._or(vm_p, self.empty_vec), self._or(vp, self.empty_vec),
-                              self._or(moving_p, self.empty_vec), particle_owner,
-                              self._or(bq0, self.empty_pose), self._or(bq_pred, self.empty_pose),
-                              self._or(vm_b, self.empty_twist), self._or(vb, self.empty_twist),
-                              self._or(moving_b, self.empty_twist), body_owner, toi, wp.float64(h)],
-                      outputs=[self._or(xp, self._unused_vec), self._or(bq, self._unused_pose)], device=self.device)
+            self.launch(time_of_impact_kernel, dim=p_count + b_count,
+                      inputs=[p_count, self.or_empty(x0p, self.empty_vec), self.or_empty(x_pred, self.empty_vec),
+                              self.or_empty(vm_p, self.empty_vec), self.or_empty(vp, self.empty_vec),
+                              self.or_empty(moving_p, self.empty_vec), particle_owner,
+                              self.or_empty(bq0, self.empty_pose), self.or_empty(bq_pred, self.empty_pose),
+                              self.or_empty(vm_b, self.empty_twist), self.or_empty(vb, self.empty_twist),
+                              self.or_empty(moving_b, self.empty_twist), body_owner, toi, wp.float64(h)],
+                      outputs=[self.or_empty(xp, self._unused_vec), self.or_empty(bq, self._unused_pose)], device=self.device)
         return (xp if p_count else x_pred), (bq if b_count else bq_pred)
 
 
-class _FrictionSplit:
-    """The frictional solves of one active set with Coulomb's limit (:meth:`ContactReplay.solve`):
-    three unknowns per active contact (:func:`kernels.contact.contact_axis`) in one system
-    (:func:`kernels.contact.sticking_delassus_kernel`), where a sticking contact's relative
-    velocity is brought to its normal target and zero slip, and a sliding one keeps its normal
-    target with the friction ``j_t = -mu j_n s`` against its slip direction ``s``.
-
-    :meth:`sticking` tries every contact sticking; :meth:`mixed` continues from its last trial:
-    contacts whose impulse leaves the friction cone slide, their friction ``mu j_n`` along the
-    friction they asked for, and sliding contacts whose slip turns back stick again
-    (:func:`kernels.contact.slip_update_kernel`), until the split holds, returns to one it
-    tried, or :data:`FRICTION_SPLIT_ITERATIONS` solves are done.
-
-    Redundant contacts leave the split of the friction among them free: it is chosen in
-    proportion to normal loads (:func:`kernels.contact.tangent_weights_kernel`): the normal
-    pass's impulses, and after a trial that leaves a contact outside its cone, the last trial's
-    own (a decision, which changes the split, not the motion; under a tape the rejected trials'
-    launches stay recorded). Which contacts slide is a decision too; their directions come from
-    the impulses of the trial where they started sliding, on the tape, so the split's friction
-    directions carry their derivative. A sliding contact keeps that direction while its slip
-    does not turn back against it: its friction opposes the friction it asked for, which is
-    the slip's direction only approximately.
-
-    Args:
-        replay: the :class:`ContactReplay` whose arrays and launches it uses.
-        The others: as in :meth:`ContactReplay._solve`.
-    """
-
-    def __init__(self, replay: ContactReplay, uc, cu, c: int, n_u: int, contacts, pairs_w, weights, sides, masses,
-                 lever, vm_p, vm_b):
-        self.r = replay
-        self.uc, self.cu, self.c, self.n_u = uc, cu, c, n_u
-        self.contacts, self.pairs_w, self.weights, self.sides, self.masses, self.lever = (
-            contacts, pairs_w, weights, sides, masses, lever)
-        self.vm = (vm_p, vm_b)
-        self.mu = wp.float64(replay.friction)
-        self.last = None  # (particle_qd, body_qd, impulses, slip) of the last trial
-        self.outside = 0  # active contacts whose impulse pulled or left the cone in the last sticking trial
-
-    def _trial(self, loads, slip):
-        r, c, (_, targets, _, normals, _) = self.r, self.c, self.contacts
-        m = 3 * self.n_u
-        tangent_weight = r.take(c, wp.float64, zero=False, grad=False)
-        with paused_tape():
-            r._launch(K.tangent_weights_kernel, dim=1, inputs=[c, self.cu, loads, normals], outputs=[tangent_weight],
-                      device=r.device)
-        matrix = r._zeros(0, wp.float64, shape=(m, m))
-        r._launch(K.sticking_delassus_kernel, dim=(m, m),
-                  inputs=[self.uc, self.pairs_w, self.weights, normals, r.vertex_type, r.vertex_owner, *self.sides,
-                          *self.masses, wp.float64(REGULARIZATION), tangent_weight, slip, self.mu],
-                  outputs=[matrix], device=r.device)
-        vp, vb, total = r._refined_impulses(matrix, m, K.sticking_rhs_kernel, K.sticking_impulses_kernel, (), self.uc,
-                                            self.cu, c, self.pairs_w, self.weights, normals, targets, self.sides,
-                                            self.masses, self.lever, *self.vm, rhs_args=(slip,))
-        self.last = (vp, vb, total, slip)
-        return self.last
-
-    def _changes(self):
-        """The next split after the last trial and how many contacts it changes: the directions
-        (fresh, taped from the trial's impulses) after the decision which contacts slide."""
-        r, (vp, vb, total, slip) = self.r, self.last
-        normals = self.contacts[3]
-        counts = r.take(1, wp.int32, grad=False)
-        codes = r.take(self.c, wp.int32, zero=False, grad=False)
-        with paused_tape():
-            r._launch(K.slip_update_kernel, dim=self.c,
-                      inputs=[total, normals, self.cu, self.pairs_w, self.weights, r.vertex_type, r.vertex_owner,
-                              self.lever, r._or(vp, r.empty_vec), r._or(vb, r.empty_twist), self.mu,
-                              wp.float64(SLIP_REVERSAL), slip],
-                      outputs=[codes, counts], device=r.device)
-        changes = int(counts.numpy()[0])
-        if not changes:
-            return slip, 0
-        slip_next = r.take(self.c, wp.vec3d, zero=False)
-        r._launch(K.slip_directions_from_impulses_kernel, dim=self.c, inputs=[codes, total, normals, slip],
-                  outputs=[slip_next], device=r.device)
-        return slip_next, changes
-
-    def _result(self):
-        r, (vp, vb, total, _) = self.r, self.last
-        normal_part = r._zeros(self.c, wp.vec3d)
-        r._launch(K.normal_part_kernel, dim=self.c, inputs=[total, self.contacts[3]], outputs=[normal_part],
-                  device=r.device)
-        return vp, vb, normal_part
-
-    def sticking(self, normal):
-        """Every active contact sticking (split by the loads ``normal``, then by the trial's
-        own): ``(particle_qd, body_qd, normal impulses)`` as :meth:`ContactReplay.solve`, or None
-        when some impulse pulls or leaves its cone (how many: :attr:`outside`)."""
-        r = self.r
-        slip = r.take(self.c, wp.vec3d, grad=False)  # zero: every contact sticking
-        for loads in (normal, None):
-            _, _, total, _ = self._trial(normal if loads is not None else self.last[2], slip)
-            count = r.take(1, wp.int32, grad=False)
-            with paused_tape():
-                r._launch(K.outside_cone_kernel, dim=self.c, inputs=[total, self.contacts[3], self.cu, self.mu],
-                          outputs=[count], device=r.device)
-            self.outside = int(count.numpy()[0])
-            if not self.outside:
-                return self._result()
-        return None
-
-    def mixed(self):
-        """Some contacts sticking, the others sliding, from the last sticking trial: as
-        :meth:`sticking`, or None when the split returns to one it tried or still changes after
-        :data:`FRICTION_SPLIT_ITERATIONS` solves. A sticking contact that pulls is left to the
-        caller's active set, which drops it."""
-        seen = {np.zeros(self.c, dtype=bool).tobytes()}  # every contact sticking: tried
-        for _ in range(FRICTION_SPLIT_ITERATIONS):
-            slip, changes = self._changes()
-            if not changes:
-                return self._result()
-            sliding = (np.abs(slip.numpy()[: self.c]).sum(axis=1) > 0.0).tobytes()
-            if sliding in seen:
-                return None  # the split cycles
-            seen.add(sliding)
-            self._trial(self.last[2], slip)
-        return None

@@ -9,10 +9,11 @@ place (no temporary Warp array, no copy launch). On other devices it copies thro
 
 from __future__ import annotations
 
-import ctypes
-
 import numpy as np
 import warp as wp
+
+from core.warp_adapter import (cpu_capture_active, cpu_launch, cpu_launch_arguments, host_view,
+                                packed_argument)
 
 
 def host(arr: wp.array) -> np.ndarray:
@@ -21,10 +22,7 @@ def host(arr: wp.array) -> np.ndarray:
     times); elsewhere a fresh copy."""
     if not arr.device.is_cpu:
         return arr.numpy()
-    view = getattr(arr, "_host_view", None)
-    if view is None:
-        view = arr._host_view = arr.numpy()
-    return view
+    return host_view(arr)
 
 
 def upload(dst: wp.array, src: np.ndarray) -> wp.array:
@@ -46,6 +44,21 @@ def upload(dst: wp.array, src: np.ndarray) -> wp.array:
     return dst
 
 
+def grown_capacity(rows: int, current: int, minimum: int = 16) -> int:
+    """The one growth policy of the reused device buffers (:class:`Staging`, the contact set's
+    rows, the narrow and broad phases' outputs): at least ``rows``, at least twice the current
+    capacity (n appends cost O(n) copies in all), at least ``minimum``."""
+    return max(int(rows), 2 * int(current), int(minimum))
+
+
+def rows(a, tail: tuple, dtype=np.float64) -> np.ndarray:
+    """``a`` (a Warp array, a tensor, array-like or None) as a numpy array of rows of shape
+    ``tail``: (n, *tail) of ``dtype``; None gives zero rows."""
+    if a is None:
+        return np.zeros((0, *tail), dtype=dtype)
+    return np.asarray(a.numpy() if hasattr(a, "numpy") else a, dtype=dtype).reshape(-1, *tail)
+
+
 def read_only(*arrays: np.ndarray) -> tuple:
     """``arrays``, made read-only (results shared between calls: writing one raises)."""
     for a in arrays:
@@ -56,7 +69,7 @@ def read_only(*arrays: np.ndarray) -> tuple:
 def zero(arr: wp.array) -> wp.array:
     """Sets ``arr`` to zeros: on the CPU through its host view (a counter reset per launch costs
     a microsecond less than ``zero_()``), except under a CPU graph capture, which must record it."""
-    if arr.device.is_cpu and not _cpu_capture_active(arr.device):
+    if arr.device.is_cpu and not cpu_capture_active(arr.device):
         host(arr).fill(0)
     else:
         arr.zero_()
@@ -79,7 +92,7 @@ class Staging:
     def empty(self, name: str, rows: int, dtype) -> wp.array:
         a = self._arrays.get(name)
         if a is None or a.shape[0] < max(rows, 1) or a.dtype != dtype:
-            size = max(rows, 2 * (a.shape[0] if a is not None else 0), 16)
+            size = grown_capacity(rows, a.shape[0] if a is not None else 0)
             a = wp.zeros(size, dtype=dtype, device=self.device)
             self._arrays[name] = a
         return a
@@ -171,30 +184,11 @@ class RecordedLaunches:
         self.device = device
         self._cmds: dict = {}
 
-    @staticmethod
-    def _cpu_arguments(cmd, last=None, stale=()):
-        """(argument structure, field names, packed types) of a CPU command, or None where its
-        own launch() must run (launch in blocks, or a Warp without the hooks this relies on).
-        ``stale``: indices of array arguments ``last`` that the command's own copy lacks."""
-        if not cmd.device.is_cpu or cmd.block_dim > 1 or cmd.adjoint or getattr(cmd, "hooks", None) is None \
-                or getattr(cmd.hooks, "forward", None) is None:
-            return None
-        for i in stale:
-            cmd.set_param_at_index(i, last[i])
-        if stale:
-            stale.clear()
-        names = [arg.label for arg in cmd.kernel.adj.args]
-        types = [type(cmd.params[1 + i]) for i in range(len(names))]
-        struct = type("RecordedArgs", (ctypes.Structure,), {"_fields_": list(zip(names, types))})()
-        for i, name in enumerate(names):
-            setattr(struct, name, cmd.params[1 + i])
-        return struct, names, types
-
     def launch(self, key, kernel, dim: int, args: list) -> None:
         entry = self._cmds.get(key)
         if entry is None:  # recorded, not run (record_cmd)
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
-            self._cmds[key] = entry = [cmd, list(args), dim, self._cpu_arguments(cmd), set()]
+            self._cmds[key] = entry = [cmd, list(args), dim, cpu_launch_arguments(cmd), set()]
         cmd, last, last_dim, cpu, stale = entry
         if dim != last_dim:
             cmd.set_dim(dim)
@@ -212,19 +206,19 @@ class RecordedLaunches:
                     cmd.set_param_at_index(i, new)
                     stale.discard(i)
                     if cpu is not None:
-                        packed = cmd.params[1 + i]
+                        packed = packed_argument(cmd, i)
                         if type(packed) is cpu[2][i]:
                             setattr(cpu[0], cpu[1][i], packed)
                         else:  # packed as another ctypes class (a value argument given another way)
-                            cpu = entry[3] = self._cpu_arguments(cmd, last, stale)
+                            cpu = entry[3] = cpu_launch_arguments(cmd, last, stale)
                 last[i] = new
-        if cpu is None or _cpu_capture_active(cmd.device):
+        if cpu is None or cpu_capture_active(cmd.device):
             for i in stale:
                 cmd.set_param_at_index(i, last[i])
             stale.clear()
             cmd.launch()
         else:
-            cmd.hooks.forward(ctypes.byref(cmd.params[0]), ctypes.byref(cpu[0]))
+            cpu_launch(cmd, cpu[0])
 
 
 def _same_kind_of_array(new, old) -> bool:
@@ -235,19 +229,11 @@ def _same_kind_of_array(new, old) -> bool:
         and wp.config.launch_array_access_mode == wp.config.LaunchArrayAccessMode.RELAXED
 
 
-def _cpu_capture_active(device) -> bool:
-    """Whether a Warp graph capture records launches on ``device`` (then launches go through
-    Warp's own path, which records them)."""
-    runtime = wp._src.context.runtime
-    capture = getattr(runtime, "_apic_capture", None) if runtime is not None else None
-    return capture is not None and capture.device == device
-
-
 def copy_rows(dst: wp.array, src: wp.array, n: int) -> wp.array:
     """Copies the first ``n`` rows of ``src`` into ``dst`` (same dtype) and returns ``dst``: on
     the CPU through the arrays' host views (no launch), elsewhere by ``wp.copy``."""
     if n:
-        if dst.device.is_cpu and src.device.is_cpu and not _cpu_capture_active(dst.device):
+        if dst.device.is_cpu and src.device.is_cpu and not cpu_capture_active(dst.device):
             host(dst)[:n] = host(src)[:n]
         else:
             wp.copy(dst, src, count=n)

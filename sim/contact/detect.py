@@ -1,0 +1,342 @@
+"""The detection stage of the collision response: which primitive pairs are hits in a pass (the
+proximity pairs at the start of a substep, or one CCD round's crossings), in pair order, with
+their geometry and whether they approach, and the contact set they join
+(:class:`ContactDetection`). Every decision here is made off the tape, on the model's device."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from collision.broad_phase import BroadPhase
+from collision.ccd import ONES3
+from collision.narrow_phase import CandidateNarrowPhase
+from core.buffers import host, zero
+from kernels.contact_geometry import contact_geometry_kernel
+from kernels.contact_set import (add_contacts_kernel, approach_kernel, gather_hits_kernel, hit_keys_kernel,
+                                 match_contacts_kernel, plane_crossing_kernel, plane_proximity_kernel,
+                                 sort_keys_kernel)
+from kernels.pose import pose_positions_kernel, pose_substep_kernel
+from sim.contact.contacts import ContactLimitExceeded, Hits
+from sim.model import State
+from sim.contact.tuning import (APPROACH_EPS, CCD_REACH_MIN_CANDIDATES, CCD_REACH_SLACK, COVER_AHEAD,
+                                COVER_AHEAD_LIMIT, COVER_DENSE_CANDIDATES, COVER_MARGIN, COVER_SCALES, COVER_SLACK,
+                                COVER_SPARSE_CANDIDATES, DEVICE_SORT_MIN, END_OF_SUBSTEP, MAX_HITS_MIN,
+                                MAX_HITS_PER_VERTEX, PLANE_ROUNDING_SLACK, PROXIMITY_HYSTERESIS, SEPARATION_RATE,
+                                TOUCHING_RELATIVE)
+
+
+class ContactDetection:
+    """Hits of the collidable vertices, faces, edges and planes of one model, and the contact set
+    they join.
+
+    The broad phase's candidates (one query kept while the motion stays inside its cover,
+    :meth:`cover`) go through the narrow phase of :class:`collision.narrow_phase.CandidateNarrowPhase`
+    (proximity at the start, or CCD of the straight paths at zero thickness) and the
+    vertex-plane tests; the hits are put into one canonical pair order (:meth:`sorted_hits`),
+    given their geometry (:meth:`hit_geometry`), tested for approach (:meth:`approach`) and added
+    to the contact set (:meth:`add_hits`), all by device kernels; the host sees counts.
+
+    Args:
+        model: the :class:`sim.model.Model`; mesh: its :class:`sim.collision_mesh.CollisionMesh`.
+        planes: (K, 4) the planes' normals and offsets.
+        n_bodies: the bodies with collidable vertices.
+        replay: the response's :class:`sim.contact.replay.ContactReplay` (its device copies of the
+            vertex kinds, owners, local positions and planes).
+        contacts: the device contact set (:class:`sim.contact.contacts.Contacts`).
+        staging, launches: the response's reused arrays and recorded launches.
+        separation: the separation ``delta`` [m] every contact keeps.
+        max_derivative: ``M`` of the contact times' mollified derivatives.
+        ccd_options: the narrow phase's options.
+        differentiable: whether the replayed response (not Gauss-Seidel) follows.
+    """
+
+    def __init__(self, model, mesh, planes: np.ndarray, n_bodies: int, replay, contacts, staging, launches,
+                 separation: float, max_derivative: float, ccd_options: dict, differentiable: bool) -> None:
+        m, dev = model, model.device
+        self.model = model
+        self.replay, self.contacts, self.staging, self.launches = replay, contacts, staging, launches
+        self.separation, self.max_derivative, self.differentiable = separation, max_derivative, differentiable
+        self.n_particles, self.n_bodies, self.n_vertices = mesh.particle_count, n_bodies, mesh.vertex_count
+        self.planes = planes
+        self.max_hits = max(MAX_HITS_MIN, MAX_HITS_PER_VERTEX * (self.n_vertices + int(m.plane_count) * self.n_particles))
+        faces, edges = mesh.faces, mesh.feature_edges
+        # broad-phase groups: the particles (self-collision only with "self_collision"), each
+        # body (never with itself), the static meshes (never with each other)
+        groups, self_collision, static = [], [], []
+        if self.n_particles:
+            groups.append(np.zeros(self.n_particles, dtype=np.int64))
+            self_collision.append("self_collision" in model.components)
+            static.append(False)
+        if mesh.shape_count:
+            groups.append(len(self_collision) + mesh.shape_body)
+            self_collision.extend([False] * m.body_count)
+            static.extend([False] * m.body_count)
+        if len(mesh.static_vertices):
+            groups.append(np.full(len(mesh.static_vertices), len(self_collision), dtype=np.int64))
+            self_collision.append(False)
+            static.append(True)
+        self.broad_phase = None
+        if self.n_vertices and len(faces):
+            self.broad_phase = BroadPhase(
+                faces, edges, num_vertices=self.n_vertices,
+                groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
+                static=np.array(static, dtype=bool), device=dev,
+            )
+            self.narrow = CandidateNarrowPhase(self.broad_phase, **ccd_options)
+        self.cover_scale = 0  # index into COVER_SCALES
+        # the vertices the vertex-plane tests cover (movable particles and the rigid surface
+        # vertices) and the planes' normals / offsets. The integrator's plane stage has already
+        # stopped the particles at the planes when the handler runs, but a mesh contact's
+        # impulse can push a particle back through (cloth pressed into the ground by a body):
+        # as rows of the same solve the plane holds it
+        particle_inv_mass = m.particle_inv_mass.numpy() if mesh.particle_count else np.zeros(0)
+        movable_particles = np.flatnonzero(particle_inv_mass > 0)
+        self.plane_vertex_ids = ids = np.concatenate([movable_particles,
+                                                      np.arange(mesh.shape_offset, mesh.static_offset)])
+        threshold = np.concatenate([np.full(len(movable_particles), 1.0 - PLANE_ROUNDING_SLACK),
+                                    np.full(mesh.shape_count, 1.0 + PROXIMITY_HYSTERESIS)])  # x delta
+        n_vertex_rows = mesh.vertex_count + 1  # with the dummy static vertex of vertex-plane contacts
+        self.key_base = max(n_vertex_rows, len(faces), len(edges), len(planes)) + 1
+        self._no_inertia = wp.zeros(1, dtype=wp.mat33d, device=dev)  # an unread inertia array
+        # one detection pass's hits, the plane tests' vertices, distances and hits, the counters
+        self.hits = Hits(dev)
+        self._plane_ids_w = wp.array(np.append(ids, 0).astype(np.int32), dtype=wp.int32, device=dev)
+        self._plane_threshold_w = wp.array(np.append(threshold, 1.0), dtype=wp.float64, device=dev)
+        rows = max(len(ids) * len(planes), 1)
+        self._plane_d0_w = wp.zeros(rows, dtype=wp.float64, device=dev)
+        self._plane_pairs_w = wp.zeros(rows, dtype=wp.vec2i, device=dev)
+        self._plane_time_w = wp.zeros(rows, dtype=wp.float64, device=dev)
+        self._plane_counter, self._kept_counter, self._approach_counter, self._repeated_counter = (
+            wp.zeros(1, dtype=wp.int32, device=dev) for _ in range(4))
+        P, B = max(self.n_particles, 1), max(self.n_bodies, 1)
+        # no contact time yet (inf)
+        self.inf_time_p = wp.array(np.full(P, np.inf), dtype=wp.float64, device=dev)
+        self.inf_time_b = wp.array(np.full(B, np.inf), dtype=wp.float64, device=dev)
+        self._no_merge = wp.zeros(1, dtype=wp.int32, device=dev)  # the merge decisions' stand-in (not written)
+        self.v_start = None
+        self.separation_speed = 0.0
+        self.x1_pred_w = None
+
+    def begin(self, v_start, separation_speed: float) -> None:
+        """Starts a substep: the start velocities (particles, bodies: device arrays), which an
+        impact reflects, and the separation speed ``delta / h`` [m/s]."""
+        self.v_start, self.separation_speed = v_start, separation_speed
+
+    def pose(self, name: str, particle_q: wp.array | None, body_q: wp.array | None) -> wp.array:
+        """World positions (V + 1, 3) [m] of the collidable vertices and the dummy vertex at the
+        origin for the device arrays ``particle_q`` (P,) and ``body_q`` (B,)
+        (:func:`kernels.pose.pose_positions_kernel`), in the handler's device buffer ``name``
+        (overwritten by the next pose into ``name``)."""
+        n, R = self.n_vertices + 1, self.replay
+        x = self.staging.empty("posed_" + name, n, wp.vec3d)  # not the substep pose's buffers
+        self.launches.launch(("pose", name), pose_positions_kernel, n, [
+            particle_q if self.n_particles else R.empty_vec, body_q if self.n_bodies else R.empty_pose,
+            R.vertex_type, R.vertex_owner, R.local, x])
+        return x
+
+    def pose_substep(self, state_in: State, state_pred: State):
+        """:meth:`pose` of ``state_in`` and of ``state_pred`` and the bodies' world inverse
+        inertia tensors at ``state_in`` (``R I^-1 R^T``), in one launch
+        (:func:`kernels.pose.pose_substep_kernel`).
+
+        Returns:
+            (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`pose`'s), the
+            start positions' and lever arms' device arrays, the predicted positions on the host,
+            the inverse inertia device array); the predicted positions' device array is kept in
+            ``x1_pred_w``.
+        """
+        n, R, B = self.n_vertices + 1, self.replay, self.n_bodies
+        empty = self.staging.empty
+        x0, lever0 = empty("x_start", n, wp.vec3d), empty("lever_start", n, wp.vec3d)
+        x1 = empty("x_predicted", n, wp.vec3d)
+        inv_inertia_w = empty("inv_inertia_w", max(B, 1), wp.mat33d)
+        P = self.n_particles
+        self.launches.launch("pose_substep", pose_substep_kernel, max(n, B), [
+            state_in.particle_q if P else R.empty_vec, state_in.body_q if B else R.empty_pose,
+            state_pred.particle_q if P else R.empty_vec, state_pred.body_q if B else R.empty_pose,
+            R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
+            n, B, x0, lever0, x1, inv_inertia_w])
+        self.x1_pred_w = x1
+        return host(x0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
+
+    def cover(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float) -> None:
+        """The substep's broad-phase cover (:meth:`CandidateNarrowPhase.cover`) of the motion
+        ``x0 -> x1_pred`` (V, 3) at the current scale (:data:`COVER_SCALES`), which a fresh query
+        then moves a step towards its candidate budget."""
+        scale = COVER_SCALES[self.cover_scale]
+        queries = self.narrow.queries
+        self.narrow.cover(x0, x1_pred, COVER_MARGIN * scale * delta, COVER_SLACK * scale * delta, COVER_AHEAD,
+                           COVER_AHEAD_LIMIT * scale * delta)
+        if self.narrow.queries != queries:
+            found = self.narrow.covered_candidates()
+            if found < COVER_SPARSE_CANDIDATES:
+                self.cover_scale = min(self.cover_scale + 1, len(COVER_SCALES) - 1)
+            elif found > COVER_DENSE_CANDIDATES:
+                self.cover_scale = max(self.cover_scale - 1, 0)
+
+    def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> int:
+        """Puts the narrow phase's ``mesh_count`` hits (:attr:`CandidateNarrowPhase.hits`) and the
+        ``plane_count`` vertex-plane ones into :attr:`hits` in ascending pair order (the
+        order of the contacts is then the same whatever the broad phase's candidate order or the
+        device's thread schedule); ``max_distance >= 0`` drops mesh pairs not nearer than it
+        (the proximity pass), ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s.
+        Returns the number of hits kept."""
+        H, nb, launch = self.hits, self.narrow.hits, self.launches.launch
+        total = mesh_count + plane_count
+        H.reserve(total)
+        zero(self._kept_counter)
+        launch("hit_keys", hit_keys_kernel, total, [
+            mesh_count, nb["kind"], nb["pairs"], nb["offset"], float(max_distance), self._plane_pairs_w,
+            self.key_base, H.keys, H.order, self._kept_counter])
+        kept = int(host(self._kept_counter)[0])
+        if kept > self.max_hits:
+            raise ContactLimitExceeded(
+                f"{kept} contacts in one collision round of a substep, more than the limit of {self.max_hits} "
+                f"({MAX_HITS_PER_VERTEX} per collision vertex): the substep is far too long for the motion")
+        if self.hits.device.is_cpu or total <= DEVICE_SORT_MIN:
+            launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
+        else:
+            wp.utils.radix_sort_pairs(H.keys, H.order, total)
+        if kept:
+            zero(self._repeated_counter)
+            launch("gather", gather_hits_kernel, kept, [
+                H.keys, H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
+                self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
+                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
+            if host(self._repeated_counter)[0]:
+                raise RuntimeError("collision detection returned a primitive pair twice in one pass "
+                                   "(the broad phase's candidates must be distinct pairs)")
+        H.count = kept
+        return kept
+
+    def hit_geometry(self, x0_w, x1_w, lever_w, vm, vel, times, h: float) -> None:
+        """Times [s], weights, normals and targets of :attr:`hits` on the paths ``x0_w -> x1_w``
+        (:func:`kernels.contact_geometry.contact_geometry_kernel`, the replay's definition), with the
+        velocities ``v-`` (``vm``) before each owner's contact time (``times``: particle and body
+        device arrays; None: no contact yet) and ``vel`` after it (None: still ``v-``)."""
+        H, R = self.hits, self.replay
+        vc = vm if vel is None else vel
+        tp, tb = times if times is not None else (self.inf_time_p, self.inf_time_b)
+        self.launches.launch("hit_geometry", contact_geometry_kernel, H.count, [
+            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
+            H.plane, R.planes, *self.v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
+            float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
+            float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
+            self.staging.empty("hit_push", max(H.count, 1), wp.float64)])
+
+    def add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
+        """Grows the contact set by :attr:`hits` (``all_new``: every hit, into the empty set;
+        else the ``approaching`` ones, :func:`kernels.contact_set.add_contacts_kernel`) with the
+        hits' geometry (``geometry``: (toi, weights, normals, targets) device arrays; default
+        the hits' own) and, with ``merge`` ((hit, keep toi, keep target) int32 arrays of the
+        grown set's rows), the decisions the taped replay's merge repeats."""
+        cs, H = self.contacts, self.hits
+        toi, w, n, target = geometry[:4] if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
+        cs.reserve(cs.count + (H.count if all_new else approaching))
+        record = merge is not None
+        merge = merge if record else (self._no_merge,) * 3
+        self.launches.launch("add", add_contacts_kernel, 1, [
+            H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
+            self.replay.vertex_type, cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
+            cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
+        cs.count = int(host(cs.counter)[0])
+
+    def plane_hits(self, x_w, delta: float | None) -> int:
+        """Vertex-plane hits into the plane buffers: with ``delta``, the proximity pairs at the
+        start positions ``x_w`` (which also keeps their plane distances); else the crossings of
+        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number."""
+        n = len(self.plane_vertex_ids)
+        if not (n and len(self.planes)):
+            return 0
+        zero(self._plane_counter)
+        if delta is not None:
+            self.launches.launch("plane_proximity", plane_proximity_kernel, n, [
+                x_w, self._plane_ids_w, self._plane_threshold_w, self.replay.planes, len(self.planes), float(delta),
+                self._plane_d0_w, self._plane_counter, self._plane_pairs_w])
+        else:
+            self.launches.launch("plane_crossing", plane_crossing_kernel, n, [
+                x_w, self._plane_ids_w, self.replay.planes, len(self.planes), self._plane_d0_w,
+                self._plane_counter, self._plane_pairs_w, self._plane_time_w])
+        return int(host(self._plane_counter)[0])
+
+    def proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
+        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
+        device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
+        closest points are nearer than ``delta`` [m] (up to :data:`PROXIMITY_HYSTERESIS` beyond
+        it), then movable vertices nearer than ``delta`` to a plane (rigid ones up to the same
+        band), with the start geometry (:meth:`hit_geometry` at ``t* = 0``: the offset's
+        direction, or the face's normal over a face, or for touching pairs as
+        :data:`TOUCHING_RELATIVE` says; target and push as
+        :func:`kernels.contact_geometry.contact_geometry_kernel` says).
+
+        The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
+        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
+        3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns the
+        number of contacts."""
+        if not self.proximity_hits(x0, x1_pred, x0_w, delta):
+            return 0
+        self.hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
+        self.add_hits(True, 0)
+        return self.contacts.count
+
+    def proximity_hits(self, x0, x1_pred, x0_w, delta: float) -> int:
+        """:meth:`proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
+        delta`` at the start into :attr:`hits` (sorted); returns their number."""
+        n = self.n_vertices
+        radius = None
+        if self.narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
+            step = x1_pred[:n] - x0[:n]
+            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
+            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
+                radius = None
+        reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
+        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius)  # slack: the exact test follows
+        planes = self.plane_hits(x0_w, delta)
+        return self.sorted_hits(mesh, planes, 0, reach) if mesh + planes else 0
+
+    def ccd_round(self, x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
+        """One CCD round of the straight paths ``x0 -> x1`` (V + 1, 3) (device arrays ``x0_w``,
+        ``x1_w``; :meth:`ccd_hits`), the hits' geometry at their detected times and whether they
+        approach (:meth:`approach`). Returns the number of approaching hits."""
+        if not self.ccd_hits(x0, x1, x1_w, 2):
+            return 0
+        self.hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
+        H = self.hits
+        return self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h)
+
+    def ccd_hits(self, x0, x1, x1_w, time_mode: int) -> int:
+        """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
+        vertex-face, edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a
+        movable vertex ends behind a plane, moving inwards) into :attr:`hits` in pair order
+        (``time_mode``: :func:`kernels.contact_set.gather_hits_kernel`'s), each matched to its row
+        in the contact set. Returns their number."""
+        n, H, cs = self.n_vertices, self.hits, self.contacts
+        mesh = self.narrow.ccd_count(x0[:n], x1[:n], 0.0)
+        planes = self.plane_hits(x1_w, None)
+        if not mesh + planes:
+            return 0
+        count = self.sorted_hits(mesh, planes, time_mode)
+        if cs.count:
+            self.launches.launch("match", match_contacts_kernel, cs.count,
+                                  [cs.kind, cs.pair, self.key_base, H.keys, count, H.row])
+        return count
+
+    def approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float) -> int:
+        """Whether each of :attr:`hits` approaches (``geometry``: its (toi [s], weights, normals)
+        device arrays; :func:`kernels.contact_set.approach_kernel`, into the hits'
+        ``approaching``), with the velocities ``v-`` (``vm``) before each owner's contact time
+        (``times``; None: no contact yet) and ``vel`` after it. Returns how many approach."""
+        H, R = self.hits, self.replay
+        vc = vm if vel is None else vel
+        tp, tb = times if times is not None else (self.inf_time_p, self.inf_time_b)
+        zero(self._approach_counter)
+        self.launches.launch("approach", approach_kernel, H.count, [
+            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
+            self.contacts.toi, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation_speed),
+            # a contact at the very end leaves once it no longer approaches (the replay pushes
+            # the separation at the position level) or, in the Gauss-Seidel response, once it
+            # leaves at its separation speed
+            0.0 if self.differentiable else float(self.separation_speed),
+            float(APPROACH_EPS), float(END_OF_SUBSTEP), self._approach_counter, H.approaching])
+        return int(host(self._approach_counter)[0])
