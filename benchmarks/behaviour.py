@@ -14,7 +14,10 @@ Records, on the current code:
 
 ``--compare`` prints, per item, ``identical`` or the largest relative difference from the
 baseline, and exits 1 when an item differs (the differences are then to be explained, and
-compared with the noise floors of ``benchmarks/trade.py``).
+compared with the noise floors of ``benchmarks/trade.py``). ``benchmarks/results/behaviour.json``
+is the fingerprint of the code as committed: a change meant to keep the arithmetic runs
+``python benchmarks/behaviour.py --compare benchmarks/results/behaviour.json``, and a change of
+the arithmetic rewrites it (``--out``) after its differences are explained.
 """
 
 from __future__ import annotations

@@ -38,6 +38,7 @@ from scenes.registry import (
 )
 from sim.integrators import INTEGRATORS
 from core.rotation import quat_to_matrix
+from sim.contact.stage import StageObserver
 from sim.stability import SimulationDiverged  # the integrator's per-substep check raises it too
 
 PRECISIONS = ("float64",)
@@ -294,12 +295,12 @@ class EnergyMeter:
         return kin, pot
 
 
-class ContactGatherer:
+class ContactGatherer(StageObserver):
     """Wraps an :class:`ImpulseCollisionHandler` to collect the contacts of all substeps of a step
     (the handler itself keeps only its last call's)."""
 
     def __init__(self, handler) -> None:
-        self.handler = handler
+        super().__init__(handler)
         self.reset()
 
     def reset(self) -> None:

@@ -37,6 +37,7 @@ import warp as wp
 
 from sim.contact.contacts import ContactLimitExceeded
 from sim.contact.response import ImpulseCollisionHandler, check_ccd_options
+from sim.contact.stage import StageObserver
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from kernels.integrate import inverse_masses
 from sim.events import check_events, event_outputs
@@ -155,13 +156,14 @@ def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkp
     return int(steps), dt_f, int(substeps), pqd, bqd, events
 
 
-class _CountingHandler:
+class _CountingHandler(StageObserver):
     """The collision handler, counting the substeps it changed in ``stats["contact_substeps"]``;
     its statistics can be saved and restored around calls an integrator discards (see
     ``ImpulseCollisionHandler.save_stats``)."""
 
     def __init__(self, handler, stats: dict):
-        self.handler, self.stats = handler, stats
+        super().__init__(handler)
+        self.stats = stats
 
     def __call__(self, state_in, state_pred, h):
         out = self.handler(state_in, state_pred, h)

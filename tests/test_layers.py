@@ -226,3 +226,15 @@ def test_the_architecture_document_names_files_that_exist():
     for folder in folders:
         assert f"`{folder}/`" in text, f"docs/architecture.md has no row for {folder}/"
     assert "docs/architecture.md" in open(os.path.join(REPO, "README.md")).read()
+
+
+def test_every_package_folder_is_a_regular_package():
+    """Each folder of the library layers has an ``__init__.py``: ``pip install`` (setuptools'
+    package discovery) leaves a folder without one out of the installed package."""
+    missing = []
+    for top in ("kernels", "core", "collision", "sim", "scenes"):
+        for folder, dirs, files in os.walk(os.path.join(REPO, top)):
+            dirs[:] = [d for d in dirs if not d.startswith((".", "__"))]
+            if any(f.endswith(".py") for f in files) and "__init__.py" not in files:
+                missing.append(os.path.relpath(folder, REPO))
+    assert not missing, f"folders without __init__.py: {missing}"

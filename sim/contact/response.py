@@ -89,6 +89,7 @@ from sim.contact.gauss_seidel import GaussSeidelSubstep
 from sim.contact.record import NO_CONTACTS, ContactRecord
 from sim.contact.replay import ContactReplay
 from sim.contact.replayed import ReplayedSubstep
+from sim.contact.stage import CollisionStage
 from sim.contact.tuning import DEFAULT_SEPARATION_RELATIVE, SEPARATION_RATE, SOLVER_ITERATIONS, SOLVER_TOLERANCE
 from sim.contact.zones import ImpactZones
 from sim.model import Model, State
@@ -134,7 +135,7 @@ def contact_separation(model: Model, mesh: CollisionMesh | None = None) -> float
     return DEFAULT_SEPARATION_RELATIVE * diag if diag > 0 else 1e-6
 
 
-class ImpulseCollisionHandler:
+class ImpulseCollisionHandler(CollisionStage):
     """Proximity + CCD + impulse response at the time of impact (see the module docstring).
 
     Args:
@@ -243,6 +244,12 @@ class ImpulseCollisionHandler:
     def broad_phase(self) -> BroadPhase | None:
         """The detection stage's broad phase (None when the model has no collidable surface)."""
         return self.detect.broad_phase
+
+    @property
+    def surface_separation(self) -> float | None:
+        """:attr:`separation` when the handler acts on collidable surfaces (it has a broad phase),
+        else None (:class:`sim.contact.stage.CollisionStage`)."""
+        return self.separation if self.detect.broad_phase is not None else None
 
     # ------------------------------------------------------------------------------------------
     # geometry

@@ -348,7 +348,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 # a particle that touched a rigid body is left to the collision stage: holding it
                 # where the trial put it would push the cloth without the body feeling the
                 # reaction (energy created; measured 3x on cloth_rigid before this)
-                body_touch = getattr(self.impulse_handler(), "last_body_particles", None)
+                body_touch = getattr(self.collision_handler, "last_body_particles", None)
                 excluded = self._no_fixed
                 if body_touch is not None and len(body_touch):
                     mask = np.zeros(n, dtype=np.int32)

@@ -10,8 +10,8 @@ One substep of length ``h = dt / substeps`` maps ``s -> s_next``:
    (``kernels.integrate.respond_plane_contacts``), into fresh particle arrays, keeping
    :meth:`SemiImplicitIntegrator.plane_separation` (the collision handler's separation when it
    has surfaces, which also holds the particles at the planes in its own solve);
-3. if ``self.collision_handler`` is set, it is called as
-   ``collision_handler(state_in, state_out, h)`` where ``state_in`` is the State at the start of
+3. if ``self.collision_handler`` (a :class:`sim.contact.stage.CollisionStage`, or any callable
+   of that signature) is set, it is called as ``collision_handler(state_in, state_out, h)`` where ``state_in`` is the State at the start of
    the substep and ``state_out`` the predicted end of substep (after the plane contacts): its
    ``particle_qd`` / ``body_qd`` are the predicted velocities ``v-`` and its positions the
    predicted positions. The handler must not write into either State's arrays (a tape may have
@@ -297,25 +297,13 @@ class SemiImplicitIntegrator:
             device=self.device,
         )
 
-    def impulse_handler(self):
-        """The collision handler itself: ``collision_handler``, or what wrappers that keep it as
-        ``.handler`` (the scenes' ContactGatherer, the rollout's counting wrapper, benchmark
-        hooks) hold; None without a handler."""
-        inner = self.collision_handler
-        while inner is not None and not hasattr(inner, "broad_phase") and hasattr(inner, "handler"):
-            inner = inner.handler
-        return inner
-
     def plane_separation(self) -> float:
-        """The distance [m] particles keep from the planes: the separation of the collision
-        handler when it acts on surfaces (an :class:`sim.contact.response.ImpulseCollisionHandler`
-        with a broad phase, also behind wrappers that keep it as ``.handler``), which every
-        contact keeps and its vertex-plane rows hold the particles at; else the model's
-        thickness (no handler, a handler without surfaces, or a hook that never acts)."""
-        inner = self.impulse_handler()
-        if getattr(inner, "broad_phase", None) is not None and hasattr(inner, "separation"):
-            return float(inner.separation)
-        return float(self.model.thickness)
+        """The distance [m] particles keep from the planes: the collision stage's
+        :attr:`~sim.contact.stage.CollisionStage.surface_separation` when it acts on surfaces
+        (every contact keeps it, and its vertex-plane rows hold the particles there), else the
+        model's thickness (no stage, a stage without surfaces, or a hook that declares none)."""
+        separation = getattr(self.collision_handler, "surface_separation", None)
+        return float(self.model.thickness) if separation is None else float(separation)
 
     def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True,
                        separation: float | None = None) -> None:
