@@ -70,8 +70,7 @@ class RolloutResult:
             substeps and particles held in its constrained re-solves),
             ``ccd_events`` (approaching CCD hits that became contacts, over all rounds and substeps),
             ``failsafe_substeps`` (impact zones formed; their rigid motion is taped),
-            ``untaped_substeps`` (substeps whose response carries no derivative: always 0,
-            kept for compatibility), ``largest_system`` (most unknowns
+            ``largest_system`` (most unknowns
             of one impulse solve), ``unsettled_active_sets`` (impulse solves whose active set did
             not settle within the repair budget).
     """
@@ -200,7 +199,7 @@ class _Runner:
         self.param_tape = None  # the inverse masses from the masses (when their gradient is wanted)
         self.params: dict[str, wp.array] = {}  # the parameter arrays whose gradients are wanted
         self.states: list[State] = []
-        self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "untaped_substeps": 0, "largest_system": 0,
+        self.stats = {"contact_substeps": 0, "failsafe_substeps": 0, "largest_system": 0,
                       "unsettled_active_sets": 0, "ccd_events": 0, "refined_substeps": 0, "contact_constrained": 0,
                       "diverged": False, "diverged_step": None,
                       "divergence_message": None}
@@ -321,7 +320,6 @@ class _Runner:
         if self.handler is not None:
             self.stats["failsafe_substeps"] = self.handler.failsafe_count
             self.stats["ccd_events"] = self.handler.ccd_events
-            self.stats["untaped_substeps"] = self.handler.untaped_substeps
             self.stats["unsettled_active_sets"] = self.handler.unsettled_active_sets
             if self.handler.differentiable:
                 self.stats["largest_system"] = self.handler.replay.largest_system

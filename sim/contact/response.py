@@ -160,9 +160,6 @@ class ImpulseCollisionHandler(CollisionStage):
         last_contact_count: C (cheap: the three above are worked out when first read).
         last_body_particles: the particles that touched a rigid body's vertex in the last call.
         failsafe_count: substeps (over the handler's life) in which the fail-safe froze something.
-        untaped_substeps: substeps (``differentiable=True``) whose response carries no
-            derivative; always 0 since the impact zones' motion is taped (kept for
-            compatibility).
         active_set_repairs: exact solves redone because the active set changed.
         unsettled_active_sets: solves whose active set still changed after
             :data:`ACTIVE_SET_ITERATIONS` repairs (the last trial's set is used).
@@ -210,7 +207,6 @@ class ImpulseCollisionHandler(CollisionStage):
         self._last = self._last_call = NO_CONTACTS  # the last call's contacts (restorable / not)
         self.failsafe_count = 0
         self.ccd_events = 0  # approaching CCD hits (contacts added by a CCD round) over the handler's life
-        self.untaped_substeps = 0
         self.active_set_repairs = 0
         self.unsettled_active_sets = 0
         # the replay's stages (differentiable=True) and its device copies of the mesh (vertex
@@ -257,7 +253,7 @@ class ImpulseCollisionHandler(CollisionStage):
 
     # ------------------------------------------------------------------------------------------
 
-    _COUNTERS = ("failsafe_count", "ccd_events", "untaped_substeps", "active_set_repairs", "unsettled_active_sets")
+    _COUNTERS = ("failsafe_count", "ccd_events", "active_set_repairs", "unsettled_active_sets")
 
     @property
     def last_contacts(self) -> np.ndarray:
