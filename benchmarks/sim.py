@@ -47,6 +47,7 @@ wp.config.log_level = wp.LOG_WARNING if hasattr(wp, "LOG_WARNING") else wp.confi
 wp.config.quiet = True
 wp.init()
 
+from sim.contact.stage import StageObserver  # noqa: E402
 from sim.integrators.semi_implicit import SemiImplicitIntegrator  # noqa: E402
 from sim.model import Model  # noqa: E402
 
@@ -273,12 +274,7 @@ class _SceneRun:
         self.handler = None if mode == "none" else ImpulseCollisionHandler(model, differentiable=mode == "replayed")
         self.contacts = 0
         if self.handler is not None:
-            def hook(s_in, s_pred, h, run=self):
-                out = run.handler(s_in, s_pred, h)
-                run.contacts += run.handler.last_contact_count
-                return out
-            hook.handler = self.handler  # the integrator's plane stage keeps the handler's separation
-            self.integrator.collision_handler = hook
+            self.integrator.collision_handler = _CountingHook(self.handler, self)
         self.states = (model.state(), model.state())
         self.seconds = 0.0
         self.timed_steps = 0
@@ -368,12 +364,26 @@ def explicit_substeps_estimate(model, dt: float = FRAME_DT, safety: float = 1.0)
     return int(2 ** max(0, int(np.ceil(np.log2(max(need, 1.0))))))
 
 
-class _TimedHandler:
+class _CountingHook(StageObserver):
+    """The collision handler, adding its calls' contacts to ``run.contacts``."""
+
+    def __init__(self, handler, run) -> None:
+        super().__init__(handler)
+        self.run = run
+
+    def __call__(self, state_in, state_pred, h):
+        out = self.handler(state_in, state_pred, h)
+        self.run.contacts += self.handler.last_contact_count
+        return out
+
+
+class _TimedHandler(StageObserver):
     """The collision handler, its wall time summed (so a run splits into force + integration and
     collision handling on the same states)."""
 
     def __init__(self, handler):
-        self.handler, self.seconds = handler, 0.0
+        super().__init__(handler)
+        self.seconds = 0.0
 
     def __call__(self, state_in, state_pred, h):
         t0 = time.perf_counter()

@@ -11,6 +11,7 @@ import warp as wp
 
 from sim.builder import ModelBuilder
 from sim.contact.response import ImpulseCollisionHandler
+from sim.contact.stage import StageObserver
 from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import PenetrationChecker
@@ -191,13 +192,13 @@ def test_cloth_resting_on_a_plane_is_no_handler_contact(differentiable, thicknes
     handler = ImpulseCollisionHandler(model, differentiable=differentiable)
     acted = []
 
-    def hook(s_in, s_pred, h):
-        out = handler(s_in, s_pred, h)
-        acted.append(out is not None)
-        return out
+    class Hook(StageObserver):  # passes the handler's separation on to the plane stage
+        def __call__(self, s_in, s_pred, h):
+            out = self.handler(s_in, s_pred, h)
+            acted.append(out is not None)
+            return out
 
-    hook.handler = handler  # the plane stage keeps the handler's separation
-    integ.collision_handler = hook
+    integ.collision_handler = Hook(handler)
     s0, s1 = model.state(), model.state()
     for _ in range(15):
         integ.step(s0, s1, 1 / 60, substeps=8)
@@ -345,3 +346,40 @@ def test_resting_contact_a_hair_beyond_the_separation_is_kept(differentiable, be
         assert x[2] == pytest.approx(delta, rel=1e-9)
     else:
         assert x[2] == z0 - 9.81 * h * h  # free fall: no contact in this substep
+
+
+def test_the_plane_stage_keeps_the_collision_stage_separation():
+    """The integrator learns the separation its particle-plane stage keeps from the collision
+    stage's ``surface_separation`` (sim.contact.stage), also behind a wrapper that watches the
+    handler; a hook that declares none, or a handler without collidable surfaces, leaves the
+    model's thickness."""
+    def model_with(surface: bool):
+        b = ModelBuilder()
+        if surface:  # a cloth over a static box
+            b.add_cloth_grid((-0.15, -0.15, 0.3), None, 3, 3, 0.1, 0.1, density=0.2, stretch_stiffness=20,
+                             shear_stiffness=10, bend_stiffness=1, damping=0.01)
+            verts, tris = box_mesh(0.1)
+            b.add_static_mesh(verts, tris)
+        else:  # free particles: nothing for the handler's broad phase
+            b.add_particle((0.0, 0.0, 0.3))
+            b.add_particle((0.1, 0.0, 0.3))
+        b.add_ground_plane()
+        return b.finalize()
+
+    model = model_with(True)
+    assert model.thickness == 0.0
+    handler = ImpulseCollisionHandler(model)
+    assert handler.separation > 0.0 and handler.surface_separation == handler.separation
+    integ = SemiImplicitIntegrator(model)
+    integ.collision_handler = handler
+    assert integ.plane_separation() == handler.separation
+    integ.collision_handler = StageObserver(handler)
+    assert integ.plane_separation() == handler.separation
+    integ.collision_handler = lambda s_in, s_pred, h: handler(s_in, s_pred, h)
+    assert integ.plane_separation() == 0.0
+    bare = model_with(False)
+    no_surface = ImpulseCollisionHandler(bare)
+    assert no_surface.surface_separation is None
+    integ = SemiImplicitIntegrator(bare)
+    integ.collision_handler = StageObserver(no_surface)
+    assert integ.plane_separation() == 0.0
