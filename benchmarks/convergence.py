@@ -52,7 +52,7 @@ G = physics.GRAVITY
 
 def ballistic(substeps: int, exact_gravity: bool = False) -> float:
     """Position error [m] of a particle thrown at (1, 0, 3) m/s after 0.5 s of free flight."""
-    b = physics._builder()
+    b = physics.scene_builder()
     v0 = np.array([1.0, 0.0, 3.0])
     b.add_particle((0.0, 0.0, 1.0), velocity=tuple(v0), mass=1.0)
     run = physics.Run(b, "replayed", substeps, exact_gravity=exact_gravity).run_for(0.5)
@@ -83,7 +83,7 @@ def ballistic_exact(substeps: int) -> float:
 
 def bounce(substeps: int, restitution: float = 0.7, exact_gravity: bool = False) -> float:
     """Height error [m] at 1.5 s of a particle dropped from 1 m with restitution 0.7."""
-    b = physics._builder(restitution=restitution)
+    b = physics.scene_builder(restitution=restitution)
     b.add_particle((0.0, 0.0, 1.0), mass=1.0)
     b.add_ground_plane()
     run = physics.Run(b, "replayed", substeps, exact_gravity=exact_gravity).run_for(1.5)
@@ -111,9 +111,9 @@ def sliding(substeps: int) -> float:
 
 def elastic_hit(substeps: int) -> float:
     """Relative error of the particle's normal velocity after an elastic hit on a free box."""
-    b = physics._builder(gravity=(0.0, 0.0, 0.0), restitution=1.0, friction=0.0)
+    b = physics.scene_builder(gravity=(0.0, 0.0, 0.0), restitution=1.0, friction=0.0)
     half = physics.BOX_HALF
-    body = physics._add_box(b, half, (0.0, 0.0, 0.0))
+    body = physics.add_box(b, half, (0.0, 0.0, 0.0))
     m1, v = 0.2, 1.0
     offset = np.array([0.05, 0.03])  # off the face's centre (y, z)
     start = (half + physics.THICKNESS + 0.03, offset[0], offset[1])
@@ -175,7 +175,7 @@ def strip(substeps: int) -> float:
 
     cfg = STRIP
     n, cell = int(cfg["cells"]), float(cfg["cell"])
-    b = physics._builder(friction=0.0)
+    b = physics.scene_builder(friction=0.0)
     material = {key: cfg[key] for key in ("density", "stretch_stiffness", "shear_stiffness", "bend_stiffness",
                                           "damping")}
     b.add_cloth_grid((0.0, 0.0, 1.0), None, n, 1, cell, cell, pinned=[0, n + 1], **material)

@@ -247,15 +247,15 @@ def profile_rollout(scene: str) -> dict:
 
         def forward(grad):
             v, res = B.simulate(model, B.STARTS["newton"], events=B.events_of(model), grad=grad)
-            return v, res, B._distance_loss(res) + res.event_roots.sum()
+            return v, res, B.distance_loss(res) + res.event_roots.sum()
     elif scene == "tunnel":
         from scenes import tunnel as T
 
         problem = T.make_problem(0)
-        event = T._event(problem.face, problem.window)
+        event = T.face_event(problem.face, problem.window)
 
         def forward(grad):
-            v, res = T._rollout(problem, problem.v_star, events=[event], grad=grad)
+            v, res = T.tunnel_rollout(problem, problem.v_star, events=[event], grad=grad)
             return v, res, (res.particle_qd[-1, 0] ** 2).sum() + res.event_roots.sum()
     else:
         raise ValueError(scene)

@@ -295,7 +295,7 @@ class Run:
         return int(self.handler.failsafe_count)
 
 
-def _builder(gravity=(0.0, 0.0, -GRAVITY), restitution: float = 0.0, friction: float = 0.5,
+def scene_builder(gravity=(0.0, 0.0, -GRAVITY), restitution: float = 0.0, friction: float = 0.5,
              thickness: float = THICKNESS):
     from sim.builder import ModelBuilder
 
@@ -304,7 +304,7 @@ def _builder(gravity=(0.0, 0.0, -GRAVITY), restitution: float = 0.0, friction: f
     return b
 
 
-def _add_box(b, half, pos, rot=None, velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0),
+def add_box(b, half, pos, rot=None, velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0),
              density: float = DENSITY) -> int:
     from sim.mesh_io import box_mesh
 
@@ -338,8 +338,8 @@ def check_flat_drop_plane(response: str = "replayed", substeps: int = 8, *, fric
     """A box (half extent 0.05 m), axis aligned, centre of mass at ``height`` m, dropped onto the
     ground plane z = 0: by symmetry it bounces straight up and down, so its angular velocity and
     horizontal drift stay 0 (tolerance 1e-9)."""
-    b = _builder(restitution=restitution, friction=friction)
-    _add_box(b, DROP_HALF, (0.0, 0.0, height))
+    b = scene_builder(restitution=restitution, friction=friction)
+    add_box(b, DROP_HALF, (0.0, 0.0, height))
     b.add_ground_plane()
     run = Run(b, response, substeps).run_for(seconds)
     bq, bqd = run.body_q[:, 0], run.body_qd[:, 0]
@@ -366,8 +366,8 @@ def check_flat_drop_static_box(response: str = "replayed", substeps: int = 8, *,
     origin: top face z = 0.2 m; no ground plane): yaw and horizontal drift stay 0 (1e-9)."""
     from sim.mesh_io import box_mesh
 
-    b = _builder(restitution=restitution, friction=friction)
-    _add_box(b, DROP_HALF, (0.0, 0.0, height))
+    b = scene_builder(restitution=restitution, friction=friction)
+    add_box(b, DROP_HALF, (0.0, 0.0, height))
     b.add_static_mesh(*box_mesh(0.2))
     run = Run(b, response, substeps).run_for(seconds)
     bq, bqd = run.body_q[:, 0], run.body_qd[:, 0]
@@ -393,9 +393,9 @@ def check_flat_drop_rigid_box(response: str = "replayed", substeps: int = 8, *, 
                               height: float = DROP_HEIGHT) -> list[Record]:
     """The same box dropped flat onto a free box (half extent 0.1 m) resting on the ground plane
     (bottom face at the contact separation): yaw and horizontal drift of both stay 0 (1e-9)."""
-    b = _builder(restitution=restitution, friction=friction)
-    top = _add_box(b, DROP_HALF, (0.0, 0.0, height))
-    bottom = _add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS))
+    b = scene_builder(restitution=restitution, friction=friction)
+    top = add_box(b, DROP_HALF, (0.0, 0.0, height))
+    bottom = add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS))
     b.add_ground_plane()
     run = Run(b, response, substeps).run_for(seconds)
     bq, bqd = run.body_q, run.body_qd
@@ -431,8 +431,8 @@ def _slope_run(response: str, substeps: int, mu: float, angle_deg: float, second
     a = math.radians(angle_deg)
     n = np.array([math.sin(a), 0.0, math.cos(a)])
     down = np.array([math.cos(a), 0.0, -math.sin(a)])
-    b = _builder(friction=mu)
-    _add_box(b, BOX_HALF, n * (BOX_HALF + THICKNESS), rot=_quat_axis_angle((0.0, 1.0, 0.0), a))
+    b = scene_builder(friction=mu)
+    add_box(b, BOX_HALF, n * (BOX_HALF + THICKNESS), rot=_quat_axis_angle((0.0, 1.0, 0.0), a))
     b.add_ground_plane(normal=n, offset=0.0)
     run = Run(b, response, substeps).run_for(seconds)
     return run, n, down
@@ -512,8 +512,8 @@ def check_rest_plane(response: str = "replayed", substeps: int = 8, *, seconds: 
                      settle: float = 1.0) -> list[Record]:
     """A box (half 0.1 m, mu 0.5) at rest on the ground plane, its bottom at the separation:
     speed after ``settle`` s <= 1e-6 m/s, horizontal drift <= 1e-6 m, |yaw| <= 1e-6 rad."""
-    b = _builder()
-    _add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS))
+    b = scene_builder()
+    add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS))
     b.add_ground_plane()
     run = Run(b, response, substeps).run_for(seconds)
     return _rest_records("rest_plane", run, response, substeps, seconds, settle)
@@ -525,8 +525,8 @@ def check_rest_box(response: str = "replayed", substeps: int = 8, *, seconds: fl
     z = 0.2), its bottom at the separation: the same bounds as :func:`check_rest_plane`."""
     from sim.mesh_io import box_mesh
 
-    b = _builder()
-    _add_box(b, BOX_HALF, (0.0, 0.0, 0.2 + BOX_HALF + THICKNESS))
+    b = scene_builder()
+    add_box(b, BOX_HALF, (0.0, 0.0, 0.2 + BOX_HALF + THICKNESS))
     b.add_static_mesh(*box_mesh(0.2))
     run = Run(b, response, substeps).run_for(seconds)
     return _rest_records("rest_box", run, response, substeps, seconds, settle)
@@ -538,9 +538,9 @@ def check_stack(response: str = "replayed", substeps: int = 8, *, boxes: int = 3
     separation above the one below, at rest: it stands; the top box's displacement at the end
     <= 1e-3 m, its speed at the end <= 1e-6 m/s, and no box turns by more than 1e-6 rad (a
     stack can stand while it turns as a whole)."""
-    b = _builder()
+    b = scene_builder()
     for k in range(int(boxes)):
-        _add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS + k * (2 * BOX_HALF + THICKNESS)))
+        add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS + k * (2 * BOX_HALF + THICKNESS)))
     b.add_ground_plane()
     run = Run(b, response, substeps).run_for(seconds)
     bq, bqd = run.body_q, run.body_qd
@@ -575,10 +575,10 @@ def _impact_run(response: str, substeps: int, restitution: float, gap: float, sp
     gravity, friction 0; run until ``after`` s past the (zero-thickness) impact time."""
     from sim.mesh_io import box_mesh
 
-    b = _builder(gravity=(0.0, 0.0, 0.0), restitution=restitution, friction=0.0)
-    a = _add_box(b, BOX_HALF, (-(2 * BOX_HALF + gap), 0.0, 0.0), velocity=(speed, 0.0, 0.0))
+    b = scene_builder(gravity=(0.0, 0.0, 0.0), restitution=restitution, friction=0.0)
+    a = add_box(b, BOX_HALF, (-(2 * BOX_HALF + gap), 0.0, 0.0), velocity=(speed, 0.0, 0.0))
     if free_target:
-        _add_box(b, BOX_HALF, (0.0, 0.0, 0.0))
+        add_box(b, BOX_HALF, (0.0, 0.0, 0.0))
     else:
         b.add_static_mesh(*box_mesh(BOX_HALF))
     run = Run(b, response, substeps)
@@ -699,8 +699,8 @@ def check_free_rotation(response: str = "replayed", substeps: int = 8, *, second
     energy drift <= 1e-3, relative angular-momentum drift <= 1e-9, and the interval between
     flips (sign changes of the body-frame omega_y) within 1 % of scipy's DOP853 solution of
     Euler's equations (rtol 1e-12)."""
-    b = _builder(gravity=(0.0, 0.0, 0.0))
-    _add_box(b, FREE_HALF, (0.0, 0.0, 0.0), angular_velocity=FREE_OMEGA)
+    b = scene_builder(gravity=(0.0, 0.0, 0.0))
+    add_box(b, FREE_HALF, (0.0, 0.0, 0.0), angular_velocity=FREE_OMEGA)
     run = Run(b, response, substeps).run_for(seconds)
     t, bq, bqd = run.t, run.body_q[:, 0], run.body_qd[:, 0]
     inertia_b = run.model.body_inertia.numpy()[0]
@@ -755,7 +755,7 @@ CLOTH = dict(density=0.2, stretch_stiffness=20.0, shear_stiffness=10.0, bend_sti
 def _cloth_flat_box_builder(cells: int, size: float, height: float, box_half: float, restitution: float):
     from sim.mesh_io import box_mesh
 
-    b = _builder(friction=0.3, restitution=restitution)
+    b = scene_builder(friction=0.3, restitution=restitution)
     cell = size / cells
     b.add_cloth_grid((-size / 2, -size / 2, height), None, cells, cells, cell, cell, **CLOTH)
     b.add_static_mesh(*box_mesh(box_half))
@@ -800,7 +800,7 @@ def _hanging_builder(cfg: dict):
     planar (a cloth rotated into the x-z plane gets z ~ 1e-17 from the quaternion's rounding, and
     its compressed bottom edge buckled out of the plane from it and swung about the pins, a mode
     the spring damping does not reach)."""
-    b = _builder(gravity=(0.0, -GRAVITY, 0.0))
+    b = scene_builder(gravity=(0.0, -GRAVITY, 0.0))
     n, size = int(cfg["cells"]), float(cfg["size"])
     cell = size / n
     top_left, top_right = n * (n + 1), n * (n + 1) + n
@@ -943,7 +943,7 @@ def check_cloth_on_sphere(response: str = "replayed", substeps: int = 8, *, seco
     cfg = SPHERE
     n, size = int(cfg["cells"]), float(cfg["size"])
     cell = size / n
-    b = _builder(friction=friction)
+    b = scene_builder(friction=friction)
     b.particle_drag = cfg["drag"]
     material = {k: cfg[k] for k in ("density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping")}
     b.add_cloth_grid((-size / 2, -size / 2, cfg["radius"] + cfg["drop"]), None, n, n, cell, cell, **material)
@@ -976,8 +976,8 @@ def check_sliding_friction(response: str = "replayed", substeps: int = 8, *, mu:
                            seconds: float = 1.2) -> list[Record]:
     """A box (half 0.1 m) on the ground plane at the separation, sliding at 2 m/s along x with
     mu = 0.3: it stops after v^2 / (2 mu g) = 0.6797 m (within 0.2 %)."""
-    b = _builder(friction=mu)
-    _add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS), velocity=(speed, 0.0, 0.0))
+    b = scene_builder(friction=mu)
+    add_box(b, BOX_HALF, (0.0, 0.0, BOX_HALF + THICKNESS), velocity=(speed, 0.0, 0.0))
     b.add_ground_plane()
     run = Run(b, response, substeps).run_for(seconds)
     bq, bqd = run.body_q[:, 0], run.body_qd[:, 0]
@@ -1002,7 +1002,7 @@ def check_sphere_bounce(response: str = "replayed", substeps: int = 8, *, restit
     (the separation), is e^2 (tolerance 1e-3 relative). Each apex is the top of the parabola
     fitted through the step samples of that flight (a semi-implicit Euler flight lies exactly on
     one)."""
-    b = _builder(restitution=restitution)
+    b = scene_builder(restitution=restitution)
     b.add_particle((0.0, 0.0, height), mass=1.0)
     b.add_ground_plane()
     fall = math.sqrt(2.0 * height / GRAVITY)

@@ -127,12 +127,12 @@ def _kernel_only(precision, p, cubic: bool):
     """A closure launching the solve kernel of ``precision`` on arrays already in its dtype."""
     import warp as wp
 
-    k = croots._kernels(precision, None, None)
+    k = croots.root_kernels(precision, None, None)
     arr = np.ascontiguousarray(p, dtype=NP_DTYPE[precision])
     v3, v4, scalar = (wp.vec3d, wp.vec4d, wp.float64) if precision == "float64" else (wp.vec3f, wp.vec4f, wp.float32)
     if cubic:
-        return lambda: croots._launch(k.solve_cubic_kernel, arr, v4, [T_MAX[precision]], [k.vec6d], scalar)
-    return lambda: croots._launch(k.solve_quadratic_kernel, arr, v3, [T_MAX[precision]], [v4], scalar)
+        return lambda: croots.launch_root_kernel(k.solve_cubic_kernel, arr, v4, [T_MAX[precision]], [k.vec6d], scalar)
+    return lambda: croots.launch_root_kernel(k.solve_quadratic_kernel, arr, v3, [T_MAX[precision]], [v4], scalar)
 
 
 def speed(n: int, n_roots: int, precisions):

@@ -89,7 +89,7 @@ def _check_positive(value: float, name: str) -> float:
     return v
 
 
-def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list, scalar=wp.float64):
+def launch_root_kernel(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs: list, scalar=wp.float64):
     """Launch ``kernel`` over the rows of ``coefficients``; outputs come back as numpy arrays.
 
     On the CPU the numpy buffers are shared with Warp (no copies in or out). ``scalar`` is the
@@ -113,7 +113,7 @@ def _launch(kernel, coefficients: np.ndarray, coef_type, scalars: list, outputs:
 _VARIANTS: dict = {}
 
 
-def _kernels(precision, max_iterations, tolerance):
+def root_kernels(precision, max_iterations, tolerance):
     """The roots kernel module for the settings: :mod:`kernels.roots` itself for the defaults,
     else the generated variant (:func:`kernels.variants.kernel_variant`, cached here)."""
     if precision == "float64" and max_iterations is None and tolerance is None:
@@ -174,14 +174,14 @@ def solve_quadratic(p, t_max: float = DEFAULT_T_MAX, *, precision: str = "float6
             float32: also coefficients that overflow float32), or a bad ``precision`` /
             ``max_iterations`` / ``tolerance`` (named).
     """
-    k = _kernels(precision, max_iterations, tolerance)
+    k = root_kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 3)
     t_max = _check_positive(t_max, "t_max")
     if k is _k:
-        (roots,) = _launch(_k.solve_quadratic_kernel, arr, wp.vec3d, [t_max], [wp.vec4d])
+        (roots,) = launch_root_kernel(_k.solve_quadratic_kernel, arr, wp.vec3d, [t_max], [wp.vec4d])
         return _to_complex(roots, arr.shape[:-1], 2)
     arr_k, t_max, v3, v4, scalar = _variant_inputs(k, arr, t_max)
-    (roots,) = _launch(k.solve_quadratic_kernel, arr_k, v3, [t_max], [v4], scalar)
+    (roots,) = launch_root_kernel(k.solve_quadratic_kernel, arr_k, v3, [t_max], [v4], scalar)
     return _to_complex(roots.astype(np.float64), arr.shape[:-1], 2)
 
 
@@ -207,24 +207,24 @@ def solve_cubic(p, t_max: float = DEFAULT_T_MAX, *, precision: str = "float64", 
     Raises:
         ValueError: wrong shape or non-finite coefficients, or a bad knob (named).
     """
-    k = _kernels(precision, max_iterations, tolerance)
+    k = root_kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 4)
     t_max = _check_positive(t_max, "t_max")
     if k is _k:
-        (roots,) = _launch(_k.solve_cubic_kernel, arr, wp.vec4d, [t_max], [_k.vec6d])
+        (roots,) = launch_root_kernel(_k.solve_cubic_kernel, arr, wp.vec4d, [t_max], [_k.vec6d])
         return _to_complex(roots, arr.shape[:-1], 3)
     arr_k, t_max, _, v4, scalar = _variant_inputs(k, arr, t_max)
-    (roots,) = _launch(k.solve_cubic_kernel, arr_k, v4, [t_max], [k.vec6d], scalar)
+    (roots,) = launch_root_kernel(k.solve_cubic_kernel, arr_k, v4, [t_max], [k.vec6d], scalar)
     return _to_complex(roots.astype(np.float64), arr.shape[:-1], 3)
 
 
 def _quadratic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float, k=_k):
     if k is not _k:
         arr_k, t_max, v3, v4, scalar = _variant_inputs(k, arr, t_max)
-        roots, jac = _launch(k.quadratic_jacobian_kernel, arr_k, v3, [t_max, max_derivative], [v4, k.mat43d], scalar)
+        roots, jac = launch_root_kernel(k.quadratic_jacobian_kernel, arr_k, v3, [t_max, max_derivative], [v4, k.mat43d], scalar)
         roots, jac = roots.astype(np.float64), jac.astype(np.float64)
     else:
-        roots, jac = _launch(
+        roots, jac = launch_root_kernel(
             _k.quadratic_jacobian_kernel, arr, wp.vec3d, [t_max, max_derivative], [wp.vec4d, _k.mat43d]
         )
     lead = arr.shape[:-1]
@@ -234,10 +234,10 @@ def _quadratic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float
 def _cubic_jacobian_raw(arr: np.ndarray, t_max: float, max_derivative: float, k=_k):
     if k is not _k:
         arr_k, t_max, _, v4, scalar = _variant_inputs(k, arr, t_max)
-        roots, jac = _launch(k.cubic_jacobian_kernel, arr_k, v4, [t_max, max_derivative], [k.vec6d, k.mat64d], scalar)
+        roots, jac = launch_root_kernel(k.cubic_jacobian_kernel, arr_k, v4, [t_max, max_derivative], [k.vec6d, k.mat64d], scalar)
         roots, jac = roots.astype(np.float64), jac.astype(np.float64)
     else:
-        roots, jac = _launch(_k.cubic_jacobian_kernel, arr, wp.vec4d, [t_max, max_derivative], [_k.vec6d, _k.mat64d])
+        roots, jac = launch_root_kernel(_k.cubic_jacobian_kernel, arr, wp.vec4d, [t_max, max_derivative], [_k.vec6d, _k.mat64d])
     lead = arr.shape[:-1]
     return roots.reshape(lead + (3, 2)), jac.reshape(lead + (3, 2, 4))
 
@@ -356,7 +356,7 @@ def quadratic_root_jacobian(
     Returns:
         float64 (..., 2, 2, 3): ``[slot (t-, t+), part (Re, Im), coefficient (a, b, c)]``.
     """
-    k = _kernels(precision, max_iterations, tolerance)
+    k = root_kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 3)
     _, jac = _quadratic_jacobian_raw(
         arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"), k
@@ -377,7 +377,7 @@ def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float =
     Returns:
         float64 (..., 3, 2, 4): ``[slot (t-, tM, t+), part (Re, Im), coefficient (q, a, b, c)]``.
     """
-    k = _kernels(precision, max_iterations, tolerance)
+    k = root_kernels(precision, max_iterations, tolerance)
     arr = _check_coefficients(p, 4)
     _, jac = _cubic_jacobian_raw(arr, _check_positive(t_max, "t_max"), _check_positive(max_derivative, "max_derivative"), k)
     return jac

@@ -164,7 +164,7 @@ def distance(res) -> float:
     return float(np.linalg.norm(res.particle_q[-1, 0].detach().numpy() - np.asarray(TARGET)))
 
 
-def _distance_loss(res):
+def distance_loss(res):
     import torch
 
     return ((res.particle_q[-1, 0] - torch.as_tensor(TARGET, dtype=torch.float64)) ** 2).sum()
@@ -220,7 +220,7 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None,
         dist = distance(res)
         wall = banked(hits)
         if wall or method == "baseline":
-            loss = _distance_loss(res)
+            loss = distance_loss(res)
         elif not opt.guarded:
             loss, _ = miss_loss(res)
         else:
@@ -273,7 +273,7 @@ def task_loss(model, v, settings: RolloutSettings | None = None) -> tuple[float,
     is hit, ``MISS_OFFSET`` plus the event loss when it is missed. Returns (loss, rollout)."""
     _, res = simulate(model, v, events=events_of(model), settings=settings)
     if banked(bounces(res)):
-        return float(_distance_loss(res)), res
+        return float(distance_loss(res)), res
     return MISS_OFFSET + float(miss_loss(res)[0]), res
 
 
@@ -312,7 +312,7 @@ def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | Non
     import torch
 
     x, res = simulate(model, v, grad=True, settings=settings)
-    _distance_loss(res).backward()
+    distance_loss(res).backward()
     analytic = x.grad.numpy()[0].copy()
     numeric = np.zeros(3)
     for k in range(3):
@@ -321,7 +321,7 @@ def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | Non
             vv = np.asarray(v, dtype=np.float64).copy()
             vv[k] += sign * step
             with torch.no_grad():
-                vals.append(float(_distance_loss(simulate(model, vv, settings=settings)[1])))
+                vals.append(float(distance_loss(simulate(model, vv, settings=settings)[1])))
         numeric[k] = (vals[0] - vals[1]) / (2.0 * step)
     return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
             "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}

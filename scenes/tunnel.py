@@ -97,7 +97,7 @@ class Problem:
     hit_margin: float = HIT_MARGIN  # barycentric margin of the hit phase's barrier (below the target's own)
 
 
-def _rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, collisions=True, max_derivative=None):
+def tunnel_rollout(problem_or_model, v, *, events=(), unmollified=False, grad=False, collisions=True, max_derivative=None):
     """(initial velocity tensor, rollout result); ``v`` a (3,) array, or a (1, 3) tensor used as is.
     ``collisions=False``: the *ghost* rollout (the particle passes through the tetrahedron; the
     body alone moves as in any miss)."""
@@ -132,7 +132,7 @@ def hit_time(res):
     return k * DT + t_star, k
 
 
-def _event(problem_face, window):
+def face_event(problem_face, window):
     from sim.events import Event, body_vertex, particle
 
     return Event("vertex_face", (particle(0),) + tuple(body_vertex(0, int(k)) for k in problem_face), window)
@@ -167,10 +167,10 @@ def make_problem(seed: int) -> Problem:
         t_aim = rng.uniform(0.4, 0.6)
         bary = rng.dirichlet([4.0, 4.0, 4.0])
         # aim at the face point at t_aim: the body's pose there from a body-only rollout
-        _, free = _rollout(model, np.zeros(3))
+        _, free = tunnel_rollout(model, np.zeros(3))
         k = int(t_aim / DT)
         frac = t_aim / DT - k
-        ev = _event(face, (k, k + 1))
+        ev = face_event(face, (k, k + 1))
         xa, xb = event_positions(model, [ev], free.particle_q, free.body_q)
         corners = (xa[0, 1:] + frac * (xb[0, 1:] - xa[0, 1:])).numpy()
         normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
@@ -178,17 +178,17 @@ def make_problem(seed: int) -> Problem:
         v_star = (point - start) / t_aim
         if np.dot(v_star, normal) >= -0.2 * np.linalg.norm(v_star) * np.linalg.norm(normal):
             continue  # the face looks away from the particle or is hit too obliquely
-        _, res = _rollout(model, v_star)
+        _, res = tunnel_rollout(model, v_star)
         t_hit, k_hit = hit_time(res)
         if t_hit is None or res.stats["contact_substeps"] != 1 or res.stats["failsafe_substeps"]:
             continue
         t_target = float(t_hit)
         v_target = res.particle_qd[-1, 0].detach().numpy().copy()
         window = (max(0, k_hit - EVENT_STEPS), k_hit)
-        event = _event(face, window)
+        event = face_event(face, window)
         # the wanted root: at v* the real one at t_target (the window ends before the hit, so
         # the event sees free flight there as for any miss)
-        roots_star = _rollout(model, v_star, events=[event])[1].event_roots[0].detach().numpy()
+        roots_star = tunnel_rollout(model, v_star, events=[event])[1].event_roots[0].detach().numpy()
         tau = t_target - window[0] * DT
         wanted = int(np.argmin(np.abs(roots_star[:, 0] - tau) + np.abs(roots_star[:, 1])))
         # start: a miss, reached from v* by a growing sideways push
@@ -202,11 +202,11 @@ def make_problem(seed: int) -> Problem:
         tracker.update(roots_star)
         for push in np.arange(1, PUSH_STEPS + 1) * (MAX_PUSH / PUSH_STEPS):
             v0 = v_star + push * side
-            _, ghost = _rollout(model, v0, events=[event], collisions=False)
+            _, ghost = tunnel_rollout(model, v0, events=[event], collisions=False)
             slot = tracker.update(ghost.event_roots[0].detach().numpy())
             if push < MIN_PUSH or ghost.event_roots[0, slot, 1].item() == 0.0:
                 continue
-            _, walk = _rollout(model, v0)
+            _, walk = tunnel_rollout(model, v0)
             if not walk.stats["contact_substeps"]:
                 problem = Problem(seed, model, face, v_star, v0, t_target, v_target, window, slot)
                 w_star = hit_coordinates(problem, res, k_hit, t_hit).detach().numpy()
@@ -221,7 +221,7 @@ def on_designated_face(problem: Problem, res, step: int) -> bool:
     differs from the neighbours' by the tetrahedron's dihedral angle (70.5 deg)."""
     from sim.events import event_positions
 
-    xa, _ = event_positions(problem.model, [_event(problem.face, (step, step + 1))],
+    xa, _ = event_positions(problem.model, [face_event(problem.face, (step, step + 1))],
                             res.particle_q.detach(), res.body_q.detach())
     c = xa[0, 1:].numpy()
     n = np.cross(c[1] - c[0], c[2] - c[0])
@@ -238,7 +238,7 @@ def hit_coordinates(problem: Problem, res, step: int, t_hit):
 
     from sim.events import closest_point_coordinates, event_positions
 
-    xa, xb = event_positions(problem.model, [_event(problem.face, (step, step + 1))], res.particle_q, res.body_q)
+    xa, xb = event_positions(problem.model, [face_event(problem.face, (step, step + 1))], res.particle_q, res.body_q)
     local = t_hit - step * DT
     corners = xa[0, 1:] + (local / DT) * (xb[0, 1:] - xa[0, 1:])
     point = res.particle_q[step, 0] + local * res.particle_qd[step, 0]
@@ -324,7 +324,7 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     v = torch.tensor(problem.v0[None], dtype=torch.float64, requires_grad=True)
     opt = GuardedAdam(v, LEARNING_RATE, ADAM_BETAS, HIT_GROWTH)
     tracker = BranchTracker(problem.tracked_slot)
-    event = _event(problem.face, problem.window)
+    event = face_event(problem.face, problem.window)
     history = _history()
     reached, stalled = None, False
     tau = _event_time(problem)
@@ -337,20 +337,20 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         if not opt.guarded:
             # phase one: the ghost's lifted event (the particle passes through the body, so the
             # event stays the free flight's whatever the real particle hits)
-            _, res = _rollout(problem, v, events=[event], unmollified=unmollified, collisions=False,
+            _, res = tunnel_rollout(problem, v, events=[event], unmollified=unmollified, collisions=False,
                               max_derivative=max_derivative)
             rollouts += 1
             loss, root, w = _miss_loss(problem, res, tracker, unmollified)
             r = root.detach().numpy()
             if r[1] == 0.0 and abs(r[0] - tau) < READY_STEPS and float(w.detach().min()) > 0.0:
                 # the ghost meets the face's inside at the target time: does the real particle?
-                _, real = _rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
+                _, real = tunnel_rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
                 rollouts += 1
                 t_hit, step = hit_time(real)
                 if t_hit is not None and on_designated_face(problem, real, step):
                     res, good = real, True
         else:
-            _, res = _rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
+            _, res = tunnel_rollout(problem, v, unmollified=unmollified, max_derivative=max_derivative)
             rollouts += 1
             t_hit, step = hit_time(res)
             good = t_hit is not None and on_designated_face(problem, res, step)
@@ -401,7 +401,7 @@ def task_loss(problem: Problem, v) -> tuple[float, dict]:
     from sim.events import root_loss
 
     with torch.no_grad():
-        _, res = _rollout(problem, np.asarray(v, dtype=np.float64), events=[_event(problem.face, problem.window)])
+        _, res = tunnel_rollout(problem, np.asarray(v, dtype=np.float64), events=[face_event(problem.face, problem.window)])
         t_hit, step = hit_time(res)
         good = t_hit is not None and on_designated_face(problem, res, step)
         figures = {"hit": t_hit is not None, "on_face": bool(good), "time_error": float("nan"),
@@ -481,7 +481,7 @@ def _log_tetrahedron(log: Any, problem: Problem) -> None:
 
     from core.rotation import quat_rotate
 
-    _, res = _rollout(problem, problem.v_star)
+    _, res = tunnel_rollout(problem, problem.v_star)
     body_q = res.body_q[:, 0].detach().numpy()
     local = problem.model.shape_vertices.numpy()
     faces = problem.model.shape_faces.numpy().reshape(-1, 3)

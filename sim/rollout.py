@@ -276,7 +276,7 @@ class _Runner:
         for k in range(first, last):
             if requires_grad:
                 # zeros, not model.state(): a clone would be recorded on the tape as a copy
-                s_next = integ._new_state(True)
+                s_next = integ.new_state(True)
             else:
                 s_next = spare
             try:

@@ -89,7 +89,7 @@ def test_baseline_gradient_from_the_miss_turns_away_from_the_wall(model):
     wall's plane, beyond its side at x = 1 m) and its loss is positive."""
 
     x, res = B.simulate(model, B.STARTS["miss"], grad=True)
-    B._distance_loss(res).backward()
+    B.distance_loss(res).backward()
     assert x.grad[0, 1] > 0.0  # descent lowers v_y
     x, res = B.simulate(model, B.STARTS["miss"], events=B.events_of(model), grad=True)
     loss, _ = B.miss_loss(res)
@@ -198,8 +198,8 @@ def test_seeded_start_and_gradient_check_run_with_the_given_settings(model):
     check = B.gradient_check(model, w, settings=settings)
     assert check["relative_error"] < 1e-5, check
     x, res = B.simulate(model, w, grad=True, settings=settings)
-    B._distance_loss(res).backward()
+    B.distance_loss(res).backward()
     np.testing.assert_array_equal(check["analytic"], x.grad.numpy()[0])
     x8, res8 = B.simulate(model, w, grad=True)
-    B._distance_loss(res8).backward()
+    B.distance_loss(res8).backward()
     assert not np.array_equal(check["analytic"], x8.grad.numpy()[0])

@@ -117,6 +117,29 @@ def test_no_private_name_is_imported_from_another_module():
     assert not bad, "private names imported across modules:\n" + "\n".join(bad)
 
 
+def test_no_private_name_of_another_module_is_read():
+    """``module._x`` where ``module`` is one of the project's modules imported by name (``import
+    a.b as m``, ``from a import b``): a private name read across modules, as good as imported."""
+    bad = []
+    for name, path in MODULES.items():
+        tree = ast.parse(open(path).read(), path)
+        aliases = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name in MODULES and alias.name != name:
+                        aliases.add(alias.asname or alias.name.split(".")[0])
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                for alias in node.names:
+                    if f"{node.module}.{alias.name}" in MODULES:
+                        aliases.add(alias.asname or alias.name)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__") \
+                    and isinstance(node.value, ast.Name) and node.value.id in aliases:
+                bad.append(f"{path}:{node.lineno} reads {node.value.id}.{node.attr}")
+    assert not bad, "private names read from another module:\n" + "\n".join(bad)
+
+
 def test_warp_internals_are_used_in_the_adapter_only():
     users = sorted(name for name, path in MODULES.items() if "warp._src" in open(path).read() and name != ADAPTER)
     users += sorted(os.path.relpath(os.path.join(folder, f), REPO) for folder, _, files in os.walk(os.path.join(REPO, "tests"))

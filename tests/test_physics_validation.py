@@ -292,8 +292,8 @@ def test_gradient_through_a_slide_is_the_closed_form():
     from sim.rollout import rollout
 
     mu, steps = 0.3, 12
-    b = P._builder(friction=mu)
-    P._add_box(b, P.BOX_HALF, (0.0, 0.0, P.BOX_HALF + P.THICKNESS))
+    b = P.scene_builder(friction=mu)
+    P.add_box(b, P.BOX_HALF, (0.0, 0.0, P.BOX_HALF + P.THICKNESS))
     b.add_ground_plane()
     model = b.finalize()
     v0 = np.array([1.5, 0.5])

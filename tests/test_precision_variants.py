@@ -106,7 +106,7 @@ def test_default_settings_return_the_original_modules():
     # the defaults spelled out are still the defaults
     w = variants.kernel_variant("float64", max_iterations=256, tolerance=2.0**-51, tolerance_scale=1.0)
     assert w.roots is kernels.roots and w.ccd is kernels.ccd
-    assert croots._kernels("float64", None, None) is kernels.roots
+    assert croots.root_kernels("float64", None, None) is kernels.roots
 
 
 def test_generated_float64_copy_gives_bit_identical_roots():
@@ -116,8 +116,8 @@ def test_generated_float64_copy_gives_bit_identical_roots():
     cubics = np.concatenate([rng.uniform(-1, 1, (2000, 4)), gt.fuzz_inputs(rng, 2000, 4),
                              gt.cubic_category("double", 200)[0], gt.cubic_category("mixed_mag", 200)[0]])
     quads = np.concatenate([rng.uniform(-1, 1, (1000, 3)), gt.fuzz_inputs(rng, 1000, 3)])
-    (copy_c,) = croots._launch(v.roots.solve_cubic_kernel, cubics, wp.vec4d, [1e150], [v.roots.vec6d])
-    (copy_q,) = croots._launch(v.roots.solve_quadratic_kernel, quads, wp.vec3d, [1e150], [wp.vec4d])
+    (copy_c,) = croots.launch_root_kernel(v.roots.solve_cubic_kernel, cubics, wp.vec4d, [1e150], [v.roots.vec6d])
+    (copy_q,) = croots.launch_root_kernel(v.roots.solve_quadratic_kernel, quads, wp.vec3d, [1e150], [wp.vec4d])
     orig_c = solve_cubic(cubics).view(np.float64).reshape(copy_c.shape)
     orig_q = solve_quadratic(quads).view(np.float64).reshape(copy_q.shape)
     assert np.array_equal(copy_c.view(np.uint64), orig_c.view(np.uint64))

@@ -19,13 +19,13 @@ def problem():
 
 
 def test_start_is_a_miss_with_a_complex_wanted_root(problem):
-    from scenes.tunnel import _event, _rollout
+    from scenes.tunnel import face_event, tunnel_rollout
 
-    _, res = _rollout(problem, problem.v0, events=[_event(problem.face, problem.window)])
+    _, res = tunnel_rollout(problem, problem.v0, events=[face_event(problem.face, problem.window)])
     assert res.stats["contact_substeps"] == 0
     assert res.event_roots[0, problem.tracked_slot, 1].item() != 0.0
     # and the target is reachable: v* hits once at t_target
-    _, hit = _rollout(problem, problem.v_star)
+    _, hit = tunnel_rollout(problem, problem.v_star)
     assert hit.stats["contact_substeps"] == 1
     assert np.allclose(hit.particle_qd[-1, 0].numpy(), problem.v_target)
 
@@ -33,9 +33,9 @@ def test_start_is_a_miss_with_a_complex_wanted_root(problem):
 def test_hit_loss_is_zero_at_the_target_and_the_face_is_recognised(problem):
     """The hit phase's loss (time, velocity, edge barrier) vanishes at the aimed shot, whose
     contact is on the designated face with coordinates inside it."""
-    from scenes.tunnel import _hit_loss, _rollout, hit_coordinates, hit_time, on_designated_face
+    from scenes.tunnel import _hit_loss, tunnel_rollout, hit_coordinates, hit_time, on_designated_face
 
-    _, res = _rollout(problem, problem.v_star)
+    _, res = tunnel_rollout(problem, problem.v_star)
     t_hit, step = hit_time(res)
     assert abs(float(t_hit) - problem.t_target) < 1e-12
     assert on_designated_face(problem, res, step)
@@ -45,13 +45,13 @@ def test_hit_loss_is_zero_at_the_target_and_the_face_is_recognised(problem):
 
 
 def test_proposed_reaches_the_target_baseline_cannot_leave_the_miss(problem):
-    from scenes.tunnel import TIME_TOLERANCE, VELOCITY_TOLERANCE, _rollout, hit_time
+    from scenes.tunnel import TIME_TOLERANCE, VELOCITY_TOLERANCE, tunnel_rollout, hit_time
 
     proposed = optimise(problem, 500, "proposed")
     assert proposed["reached_target"], proposed["time_error"]
     h = proposed["history"]
     # check the claim against a fresh rollout of the final iterate
-    _, res = _rollout(problem, h["velocity"][-1])
+    _, res = tunnel_rollout(problem, h["velocity"][-1])
     t_hit, _ = hit_time(res)
     assert abs(float(t_hit) - problem.t_target) < TIME_TOLERANCE
     v_final = res.particle_qd[-1, 0].numpy()
@@ -69,11 +69,11 @@ def test_phase_one_ghost_passes_through_and_keeps_the_event_of_free_flight(probl
     """Phase one's rollout has no mesh collisions: at the aimed shot the real particle bounces,
     the ghost flies on, and the ghost's event root is the real one's (the window ends before
     the hit)."""
-    from scenes.tunnel import DT, _event, _rollout
+    from scenes.tunnel import DT, face_event, tunnel_rollout
 
-    event = _event(problem.face, problem.window)
-    _, ghost = _rollout(problem, problem.v_star, events=[event], collisions=False)
-    _, real = _rollout(problem, problem.v_star, events=[event])
+    event = face_event(problem.face, problem.window)
+    _, ghost = tunnel_rollout(problem, problem.v_star, events=[event], collisions=False)
+    _, real = tunnel_rollout(problem, problem.v_star, events=[event])
     assert ghost.stats["contact_substeps"] == 0 and real.stats["contact_substeps"] == 1
     qd = ghost.particle_qd[:, 0].numpy()
     assert np.all(qd == qd[0])  # free flight, no gravity
@@ -134,16 +134,16 @@ def test_the_wanted_root_is_followed_on_the_ghost_from_the_aim_to_the_start():
     event window, and its event jumps to a far complex pair; the start's tracked slot is the
     continuation on the ghost (collisions off), which phase one optimises. Walked here in 40
     small steps with a fresh tracker."""
-    from scenes.tunnel import _event, _rollout
+    from scenes.tunnel import face_event, tunnel_rollout
     from sim.events import BranchTracker
 
     p = make_problem(44)
-    ev = _event(p.face, p.window)
-    roots = _rollout(p, p.v_star, events=[ev], collisions=False)[1].event_roots[0].numpy()
+    ev = face_event(p.face, p.window)
+    roots = tunnel_rollout(p, p.v_star, events=[ev], collisions=False)[1].event_roots[0].numpy()
     tau = (p.t_target - p.window[0] * 1.0 / 40.0)
     tracker = BranchTracker(int(np.argmin(np.abs(roots[:, 0] - tau) + np.abs(roots[:, 1]))))
     tracker.update(roots)
     for s in np.linspace(0.0, 1.0, 41)[1:]:
         v = p.v_star + s * (p.v0 - p.v_star)
-        slot = tracker.update(_rollout(p, v, events=[ev], collisions=False)[1].event_roots[0].numpy())
+        slot = tracker.update(tunnel_rollout(p, v, events=[ev], collisions=False)[1].event_roots[0].numpy())
     assert slot == p.tracked_slot

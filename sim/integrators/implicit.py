@@ -282,7 +282,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             self.total_constrained = constrained
             s = state_in
             for k, hk in enumerate(schedule):
-                s_next = state_out if k == len(schedule) - 1 else self._new_state(True)
+                s_next = state_out if k == len(schedule) - 1 else self.new_state(True)
                 self._substep(s, s_next, hk, True)
                 s = s_next
             return state_out
@@ -293,7 +293,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         """``s`` advanced by ``h`` (off the tape), in halves while the strain grows too fast;
         appends the substeps taken to ``schedule``."""
         m, handler = self.model, self.collision_handler
-        out = self._new_state(False)
+        out = self.new_state(False)
         stats = _save_stats(handler)
         constrained = self.total_constrained
         self._substep(s, out, h, False)
@@ -339,7 +339,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         try:
             for _ in range(self.contact_passes):
                 self._fixed, self._x_target = fixed, target
-                trial = self._new_state(requires_grad) if requires_grad else self._scratch_state(2 + (_ % 2))
+                trial = self.new_state(requires_grad) if requires_grad else self._scratch_state(2 + (_ % 2))
                 stats = _save_stats(handler)
                 super()._substep(s_in, trial, h, requires_grad)
                 pred = self._last_pred
@@ -368,7 +368,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                 self.total_constrained += added
                 fixed, target, target_v = grown, trial.particle_q, trial.particle_qd
             self._fixed, self._x_target = fixed, target
-            final = self._new_state(requires_grad) if requires_grad else self._scratch_state(4)
+            final = self.new_state(requires_grad) if requires_grad else self._scratch_state(4)
             super()._substep(s_in, final, h, requires_grad)
             pred = self._last_pred
             wp.launch(held_velocity, dim=n,

@@ -127,7 +127,7 @@ class SemiImplicitIntegrator:
         self.substeps_done = 0
 
     # ------------------------------------------------------------------ allocation
-    def _new_state(self, requires_grad: bool) -> State:
+    def new_state(self, requires_grad: bool) -> State:
         m, d = self.model, self.device
         return State(
             particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
@@ -138,7 +138,7 @@ class SemiImplicitIntegrator:
 
     def _scratch_state(self, k: int) -> State:
         while len(self._scratch) <= k:
-            self._scratch.append(self._new_state(False))
+            self._scratch.append(self.new_state(False))
         return self._scratch[k]
 
     def _stage_state(self, name: str, requires_grad: bool, bodies: State | None = None) -> State:
@@ -146,11 +146,11 @@ class SemiImplicitIntegrator:
         every stage's arrays), else one kept per ``name`` and reused (no allocation per
         substep). ``bodies``: take the body arrays from this State instead."""
         if requires_grad:
-            s = self._new_state(True)
+            s = self.new_state(True)
         else:
             s = self._stages.get(name)
             if s is None:
-                s = self._stages[name] = self._new_state(False)
+                s = self._stages[name] = self.new_state(False)
         if bodies is not None:
             s = State(particle_q=s.particle_q, particle_qd=s.particle_qd, body_q=bodies.body_q, body_qd=bodies.body_qd)
         return s
@@ -192,7 +192,7 @@ class SemiImplicitIntegrator:
             if k == substeps - 1:
                 s_next = state_out
             elif requires_grad:
-                s_next = self._new_state(True)
+                s_next = self.new_state(True)
             else:
                 s_next = self._scratch_state(k % 2)
             self._substep(s, s_next, h, requires_grad)
