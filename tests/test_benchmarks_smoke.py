@@ -128,3 +128,18 @@ def test_command_reports_a_failed_section(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit) as exc:
         cmd.main(["--only", "nope"])
     assert exc.value.code == 2
+
+
+def test_host_reads_tiny(tmp_path):
+    """benchmarks/host_reads.py counts the collision stage's reads per substep for every scene and
+    response, writes its table, and leaves core.buffers.host as it found it."""
+    import core.buffers as buffers
+    from benchmarks import host_reads
+
+    host = buffers.host
+    rows = host_reads.main(["--steps", "2", "--out", str(tmp_path / "host_reads")])
+    assert buffers.host is host
+    assert {(r["scene"], r["response"]) for r in rows} == {(s, r) for s in host_reads.SCENES for r in host_reads.RESPONSES}
+    assert all(r["host_per_substep"] > 0 and math.isfinite(r["numpy_per_substep"]) for r in rows)
+    assert "| cloth_drop | replayed |" in _read(tmp_path / "host_reads")
+    assert len(json.load(open(tmp_path / "host_reads.json"))["rows"]) == 6

@@ -1,0 +1,97 @@
+"""Host reads of the collision stage per substep: how often a substep brings device data to the
+host (``core.buffers.host``: a counter, a flag or positions; ``wp.array.numpy``).
+
+    python benchmarks/host_reads.py [--steps N] [--out benchmarks/results/host_reads]
+
+Each read is a synchronisation point: a step that reads a count between two launches cannot be
+recorded as one graph (``wp.ScopedCapture``) and, on a GPU, waits for the device each time. On the
+CPU a ``host`` view costs no copy, so these counts say how far the stage is from a capturable
+substep, not what it costs here. Per scene (defaults, both responses, ``--steps`` steps from the
+start).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import importlib
+import os
+import sys
+from typing import Any
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+
+from benchmarks import report  # noqa: E402
+
+SCENES = ("cloth_drop", "rigid_toss", "cloth_rigid")
+RESPONSES = ("replayed", "gauss-seidel")
+READERS = ("core.buffers", "sim.contact.detect", "sim.contact.response", "sim.contact.replayed",
+           "sim.contact.gauss_seidel", "sim.contact.contacts", "sim.contact.replay", "collision.narrow_phase",
+           "collision.broad_phase")
+"""The modules whose ``host`` (imported from :mod:`core.buffers`) is counted."""
+
+
+def count_reads(steps: int) -> list[dict[str, Any]]:
+    """Per scene and response: host() and numpy() calls per substep over ``steps`` steps."""
+    import warp as wp
+
+    import core.buffers as buffers
+
+    counts: collections.Counter = collections.Counter()
+    original_host, original_numpy = buffers.host, wp.array.numpy
+
+    def counting_host(arr):
+        counts["host"] += 1
+        return original_host(arr)
+
+    def counting_numpy(self):
+        counts["numpy"] += 1
+        return original_numpy(self)
+
+    modules = [importlib.import_module(name) for name in READERS]
+    patched = [m for m in modules if getattr(m, "host", None) is original_host]
+    for m in patched:
+        m.host = counting_host
+    wp.array.numpy = counting_numpy
+    rows = []
+    try:
+        from scenes.sim_common import default_args, simulate
+
+        for name in SCENES:
+            module = importlib.import_module(f"scenes.{name}")
+            for response in RESPONSES:
+                counts.clear()
+                summary, _ = simulate(module.build, default_args(steps=steps, response=response), None,
+                                      name=name, progress=False)
+                substeps = steps * summary["substeps"]
+                rows.append({"scene": name, "response": response, "substeps": substeps,
+                             "host_per_substep": counts["host"] / substeps,
+                             "numpy_per_substep": counts["numpy"] / substeps})
+    finally:
+        for m in patched:
+            m.host = original_host
+        wp.array.numpy = original_numpy
+    return rows
+
+
+def main(argv=None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=60, help="steps per scene (default 60)")
+    parser.add_argument("--out", default=os.path.join(report.RESULTS, "host_reads"))
+    args = parser.parse_args(argv)
+    import warp as wp
+
+    wp.config.quiet = True
+    rows = count_reads(args.steps)
+    lines = [f"Host reads of the collision stage per substep, {args.steps} steps of each scene from the start "
+             "(defaults: 1/60 s, 8 substeps).", ""]
+    lines += report.table(["scene", "response", "host() per substep", "numpy() per substep"],
+                          [[r["scene"], r["response"], r["host_per_substep"], r["numpy_per_substep"]] for r in rows])
+    report.write(args.out, "Host reads per substep", lines, {"steps": args.steps, "rows": rows})
+    return rows
+
+
+if __name__ == "__main__":
+    main()
