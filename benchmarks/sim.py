@@ -392,12 +392,6 @@ class _TimedHandler(StageObserver):
         finally:
             self.seconds += time.perf_counter() - t0
 
-    def save_stats(self):
-        return self.handler.save_stats()
-
-    def restore_stats(self, stats) -> None:
-        self.handler.restore_stats(stats)
-
 
 def _cloth_drop_run(cells: int, integrator: str, substeps: int, steps: int) -> dict:
     """``cloth_drop`` at ``cells`` per side for ``steps`` steps from the start: ms per step (the

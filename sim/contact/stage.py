@@ -49,3 +49,12 @@ class StageObserver(CollisionStage):
 
     def __call__(self, state_in, state_pred, h: float):
         return self.handler(state_in, state_pred, h)
+
+    def save_stats(self):
+        """The watched stage's statistics (for :meth:`restore_stats` after calls an integrator
+        discards: a trial pass, a rejected substep)."""
+        return self.handler.save_stats()
+
+    def restore_stats(self, stats) -> None:
+        """Puts back the statistics of :meth:`save_stats`."""
+        self.handler.restore_stats(stats)
