@@ -282,13 +282,18 @@ def coulomb_friction(stop: wp.vec3d, slip: wp.vec3d, limit: wp.float64) -> wp.ve
     """Coulomb's law, the one definition every response uses: the friction impulse (or velocity
     change) of a contact whose sticking impulse would be ``stop``. Inside the cone
     ``|stop| <= limit`` (``limit = mu j_n``) the contact sticks and gets ``stop``; outside it
-    slides and gets ``limit`` against its ``slip`` direction (zero for a zero ``slip``)."""
+    slides and gets ``limit`` against its ``slip`` direction (zero for a zero ``slip``). Without
+    a limit (no friction, or no normal impulse) there is no friction impulse, and no derivative
+    with respect to ``stop``."""
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if limit <= wp.float64(0.0):
+        return zero
     if not (wp.length(stop) > limit):  # a NaN stays a NaN (the divergence guard sees it)
         return stop
     length = wp.length(slip)
     if length > wp.float64(0.0):
         return (-limit / length) * slip
-    return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    return zero
 
 
 SLIP_STICK = wp.constant(0)

@@ -374,9 +374,7 @@ def respond_plane_contacts(
         vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
     vt = vi - n * vn
     jn = vn_plus - vn  # normal velocity change, >= 0
-    vt_plus = vt
-    if friction * jn > f64(0.0):  # without friction the tangential velocity passes through (and its derivative)
-        vt_plus = vt + coulomb_friction(-vt, vt, friction * jn)  # velocity changes of a unit mass
+    vt_plus = vt + coulomb_friction(-vt, vt, friction * jn)  # velocity changes of a unit mass
     v_plus = vt_plus + n * vn_plus
 
     x_out[i] = time_of_impact_position(xi, vi, v_plus, toi, dt) + drift

@@ -122,3 +122,25 @@ def test_contact_at_the_very_end_of_a_substep_bounces_instead_of_freezing():
     assert res.stats["failsafe_substeps"] == 0
     np.testing.assert_allclose(res.particle_qd[-1, 0, 1].detach().numpy(), -5.0, rtol=1e-6)
     np.testing.assert_allclose(y, 2 * 1.75 - (1.5 + 1.0), atol=1e-6)
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.5])
+def test_tangential_gradient_of_a_head_on_plane_impact(friction):
+    """A particle falls straight onto the ground plane (no tangential velocity at all) and rests
+    there. Without friction its horizontal motion is free: d x_T / d v_x = T exactly, also where
+    the tangential velocity is exactly zero. With friction a small horizontal velocity sticks at
+    the impact (the normal impulse stops it), so the derivative is the time before the impact."""
+    b = ModelBuilder()
+    b.friction = friction
+    b.add_particle((0.0, 0.0, 0.3))
+    b.add_ground_plane()
+    model = b.finalize()
+    steps = 30
+    v = torch.zeros((1, 3), dtype=torch.float64, requires_grad=True)
+    res = rollout(model, steps, DT, 8, particle_qd=v)
+    res.particle_q[-1, 0, 0].backward()
+    z = res.particle_q[:, 0, 2].detach().numpy()
+    assert z[-1] < 1e-3  # it landed and rests
+    expected = steps * DT if friction == 0.0 else np.sqrt(2 * 0.3 / 9.81)  # free, or until the impact
+    tol = 1e-12 if friction == 0.0 else DT / 8  # the impact's substep
+    assert abs(float(v.grad[0, 0]) - expected) <= tol, (float(v.grad[0, 0]), expected)
