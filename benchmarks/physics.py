@@ -52,7 +52,7 @@ __all__ = [
     "check_flat_drop_plane", "check_flat_drop_static_box", "check_flat_drop_rigid_box", "check_slope_static",
     "check_slope_sliding", "check_rest_plane", "check_rest_box", "check_stack", "check_restitution_sweep",
     "check_head_on", "check_free_rotation", "check_cloth_flat_box", "check_cloth_hanging", "check_cloth_on_sphere",
-    "check_sliding_friction", "check_sphere_bounce",
+    "check_sliding_friction", "check_sphere_bounce", "check_ball_bounce", "check_ball_roll", "check_ball_head_on",
 ]
 
 DT = 1.0 / 60.0
@@ -995,6 +995,76 @@ def check_sliding_friction(response: str = "replayed", substeps: int = 8, *, mu:
                     max_lateral=float(np.abs(bq[:, 1] - bq[0, 1]).max()), failsafe=run.failsafe_count)]
 
 
+def _apex_ratio(t: np.ndarray, z: np.ndarray, vz: np.ndarray, contact_height: float):
+    """(apex ratio, apex before, apex after, fitted gravity before, after) of the first bounce of
+    heights ``z`` [m] sampled at ``t`` [s] (``vz`` the vertical velocities), both apexes above
+    ``contact_height``: the top of the parabola fitted through each flight's samples (a
+    semi-implicit Euler flight lies exactly on one)."""
+    bounce = int(np.flatnonzero(vz > 0)[0])  # first sample moving up: the bounce was in the step before
+    # second bounce: samples after it must be excluded
+    later = np.flatnonzero((np.arange(len(vz)) > bounce) & (vz > 0) & (np.roll(vz, 1) < 0))
+    end = int(later[0]) - 1 if len(later) else len(vz)
+
+    def apex(tt, zz):
+        c2, c1, c0 = np.polyfit(tt, zz, 2)
+        return c0 - c1 * c1 / (4.0 * c2), 2.0 * c2
+
+    a0, g0 = apex(t[:bounce - 1], z[:bounce - 1])
+    a1, g1 = apex(t[bounce:end], z[bounce:end])
+    return (a1 - contact_height) / (a0 - contact_height), a0, a1, g0, g1
+
+
+BALL_RADIUS = 0.05
+
+
+def check_ball_bounce(response: str = "replayed", substeps: int = 8, *, restitution: float = 0.5,
+                      height: float = 1.0) -> list[Record]:
+    """A sphere body (radius 0.05 m, 1 kg) dropped from ``height`` m above its contact height
+    onto the ground plane with restitution e: the apex ratio is e^2 (the particles' plane law,
+    :func:`kernels.integrate.plane_rebound`; tolerance 1e-3 relative)."""
+    b = scene_builder(restitution=restitution, friction=0.0)
+    b.add_sphere(BALL_RADIUS, mass=1.0, pos=(0.0, 0.0, BALL_RADIUS + THICKNESS + height))
+    b.add_ground_plane()
+    fall = math.sqrt(2.0 * height / GRAVITY)
+    up = restitution * math.sqrt(2.0 * GRAVITY * height) / GRAVITY
+    run = Run(b, response, substeps).run_for(fall + 1.8 * up)
+    ratio, a0, a1, _, _ = _apex_ratio(run.t, run.body_q[:, 0, 2], run.body_qd[:, 0, 5], BALL_RADIUS + THICKNESS)
+    e2 = restitution * restitution
+    return [_record("ball_bounce", response, substeps, "apex ratio", ratio, expected_value=e2, tolerance=1e-3,
+                    mode="rel", expected=f"e^2 = {e2:g}", reference="Newton's restitution law (as sphere_bounce)",
+                    variant=f"sphere body, e={restitution:g}", apex_before=a0, apex_after=a1)]
+
+
+def check_ball_roll(response: str = "replayed", substeps: int = 8, *, mu: float = 0.3, speed: float = 1.0,
+                    seconds: float = 1.0) -> list[Record]:
+    """A sphere body sliding at ``speed`` without spin on the ground plane (friction ``mu``, no
+    bounce): friction spins it up until it rolls at 5/7 of its speed (the angular momentum about
+    the contact point is kept), within ``2 v / (7 mu g)`` = 0.1 s, and then rolls on."""
+    b = scene_builder(restitution=0.0, friction=mu)
+    b.add_sphere(BALL_RADIUS, mass=1.0, pos=(0.0, 0.0, BALL_RADIUS + THICKNESS), velocity=(speed, 0.0, 0.0))
+    b.add_ground_plane()
+    run = Run(b, response, substeps).run_for(seconds)
+    qd = run.body_qd[-1, 0]
+    return [_record("ball_roll", response, substeps, "final speed / initial", qd[3] / speed, expected_value=5.0 / 7.0,
+                    tolerance=1e-9, expected="5/7", reference="sliding to rolling: L about the contact point kept",
+                    variant=f"mu={mu:g}"),
+            _record("ball_roll", response, substeps, "slip speed w r - v [m/s]", qd[1] * BALL_RADIUS - qd[3],
+                    tolerance=1e-9, expected="0 (rolling)", reference="rolling without slipping",
+                    variant=f"mu={mu:g}")]
+
+
+def check_ball_head_on(response: str = "replayed", substeps: int = 8) -> list[Record]:
+    """Two equal spheres, no gravity, an elastic head-on impact: the velocities swap."""
+    b = scene_builder(gravity=(0.0, 0.0, 0.0), restitution=1.0, friction=0.0, thickness=0.0)
+    b.add_sphere(BALL_RADIUS, mass=1.0, pos=(0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+    b.add_sphere(BALL_RADIUS, mass=1.0, pos=(0.3, 0.0, 0.0))
+    run = Run(b, response, substeps).run_for(0.5)
+    qd = run.body_qd[-1]
+    return [_record("ball_head_on", response, substeps, "|v1| + |v2 - (1, 0, 0)| [m/s]",
+                    np.linalg.norm(qd[0]) + np.linalg.norm(qd[1, 3:] - (1.0, 0.0, 0.0)), tolerance=1e-12,
+                    expected="0 (swapped)", reference="equal masses, e = 1: exchange of velocities")]
+
+
 def check_sphere_bounce(response: str = "replayed", substeps: int = 8, *, restitution: float = 0.5,
                         height: float = 1.0) -> list[Record]:
     """A particle (1 kg) dropped from ``height`` m onto the ground plane with restitution e: the
@@ -1008,23 +1078,8 @@ def check_sphere_bounce(response: str = "replayed", substeps: int = 8, *, restit
     fall = math.sqrt(2.0 * height / GRAVITY)
     up = restitution * math.sqrt(2.0 * GRAVITY * height) / GRAVITY
     run = Run(b, response, substeps).run_for(fall + 1.8 * up)
-    t, z = run.t, run.particle_q[:, 0, 2]
-    vz = run.particle_qd[:, 0, 2]
     sep = run.integrator.plane_separation()
-    bounce = int(np.flatnonzero(vz > 0)[0])  # first sample moving up: the bounce was in the step before
-    # second bounce: samples after it must be excluded
-    later = np.flatnonzero((np.arange(len(vz)) > bounce) & (vz > 0) & (np.roll(vz, 1) < 0))
-    end = int(later[0]) - 1 if len(later) else len(vz)
-    pre_t, pre_z = t[:bounce - 1], z[:bounce - 1]
-    post_t, post_z = t[bounce:end], z[bounce:end]
-
-    def apex(tt, zz):
-        c2, c1, c0 = np.polyfit(tt, zz, 2)
-        return c0 - c1 * c1 / (4.0 * c2), 2.0 * c2
-
-    a0, g0 = apex(pre_t, pre_z)
-    a1, g1 = apex(post_t, post_z)
-    ratio = (a1 - sep) / (a0 - sep)
+    ratio, a0, a1, g0, g1 = _apex_ratio(run.t, run.particle_q[:, 0, 2], run.particle_qd[:, 0, 2], sep)
     e2 = restitution * restitution
     return [_record("sphere_bounce", response, substeps, "apex ratio", ratio, expected_value=e2, tolerance=1e-3,
                     mode="rel", expected=f"e^2 = {e2:g}",
@@ -1069,6 +1124,9 @@ CHECKS: dict[str, Check] = {c.name: c for c in [
     Check("cloth_on_sphere", check_cloth_on_sphere, [dict(seconds=10.0)], [dict(seconds=10.0)]),
     Check("sliding_friction", check_sliding_friction, [{}]),
     Check("sphere_bounce", check_sphere_bounce, [{}]),
+    Check("ball_bounce", check_ball_bounce, [{}]),
+    Check("ball_roll", check_ball_roll, [{}]),
+    Check("ball_head_on", check_ball_head_on, [{}]),
 ]}
 """The checks by name, in the suite's order."""
 

@@ -64,7 +64,7 @@ def table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
     return lines
 
 
-def _atomic_write(path: str, text: str) -> None:
+def atomic_write(path: str, text: str) -> None:
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=os.path.basename(path))
@@ -98,26 +98,18 @@ def write(prefix: str, title: str, lines: Sequence[str], data: dict[str, Any] | 
     """Writes ``<prefix>.md`` (``# title``, the machine, then ``lines``) and, with ``data``,
     ``<prefix>.json``; prints the markdown when ``echo``."""
     text = "\n".join([f"# {title}", "", f"Machine: {machine()}.", "", *lines, ""])
-    _atomic_write(prefix + ".md", text)
+    atomic_write(prefix + ".md", text)
     if data is not None:
-        _atomic_write(prefix + ".json", json.dumps(_jsonable(data), indent=1) + "\n")
+        atomic_write(prefix + ".json", json.dumps(_jsonable(data), indent=1) + "\n")
     if echo:
         print(text, flush=True)
 
 
 def save_figure(fig, path: str) -> None:
-    """Saves a matplotlib figure atomically (PNG)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".png")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    """Saves a matplotlib figure atomically (PNG): :func:`sim.logging.save_figure`."""
+    from sim.logging import save_figure as save
+
+    save(fig, path)
 
 
 def add_size_arguments(parser: argparse.ArgumentParser, scenes: Sequence[str], out_name: str,

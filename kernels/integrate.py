@@ -261,6 +261,30 @@ def time_of_impact_position(x0: wp.vec3d, v_minus: wp.vec3d, v_plus: wp.vec3d, t
     return x0 + ts * v_minus + (h - ts) * v_plus
 
 
+@wp.func
+def earliest_plane(x0: wp.vec3d, v: wp.vec3d, planes: wp.array(dtype=wp.vec4d), plane_count: int,
+                   separation: wp.float64, dt: wp.float64) -> int:
+    """The first plane that a point moving from ``x0`` [m] at ``v`` [m/s] for ``dt`` [s] comes
+    within ``separation`` [m] of (or -1): it moves inwards (``n.v < 0``) and ends inside
+    (``n.(x0 + dt v) < offset + separation``); a point that starts inside gets ``t* = 0``. The
+    one plane test of particles (:func:`find_plane_contacts`) and sphere bodies (whose
+    ``separation`` adds the radius, :mod:`kernels.spheres`)."""
+    best = int(-1)
+    best_t = dt
+    x1 = x0 + v * dt
+    for k in range(plane_count):
+        p = planes[k]
+        n = wp.vec3d(p[0], p[1], p[2])
+        off = p[3] + separation
+        vn = wp.dot(n, v)
+        if vn < f64(0.0) and wp.dot(n, x1) - off < f64(0.0):
+            t = wp.max(f64(0.0), (off - wp.dot(n, x0)) / vn)
+            if best < 0 or t < best_t:
+                best = k
+                best_t = t
+    return best
+
+
 @wp.kernel(enable_backward=False)
 def find_plane_contacts(
     x0: wp.array(dtype=wp.vec3d),
@@ -281,22 +305,33 @@ def find_plane_contacts(
     """
     i = wp.tid()
     best = int(-1)
-    best_t = dt
     if inv_mass[i] > f64(0.0):
-        xi = x0[i]
-        vi = v[i]
-        x1 = xi + vi * dt
-        for k in range(plane_count):
-            p = planes[k]
-            n = wp.vec3d(p[0], p[1], p[2])
-            off = p[3] + thickness
-            vn = wp.dot(n, vi)
-            if vn < f64(0.0) and wp.dot(n, x1) - off < f64(0.0):
-                t = wp.max(f64(0.0), (off - wp.dot(n, xi)) / vn)
-                if best < 0 or t < best_t:
-                    best = k
-                    best_t = t
+        best = earliest_plane(x0[i], v[i], planes, plane_count, thickness, dt)
     plane_index[i] = wp.int32(best)
+
+
+@wp.func
+def plane_rebound(n: wp.vec3d, v_start: wp.vec3d, v: wp.vec3d, toi: wp.float64, dt: wp.float64, gravity: wp.vec3d,
+                  drift: wp.vec3d, restitution: wp.float64) -> wp.float64:
+    """The normal velocity [m/s] after a plane impact at ``toi`` [s] within a substep ``dt`` [s]
+    whose velocity goes from ``v_start`` (its start) to ``v`` (predicted, after the forces): the
+    one plane-contact law of particles (:func:`respond_plane_contacts`) and sphere bodies
+    (:mod:`kernels.spheres`); the derivation is in :func:`respond_plane_contacts`."""
+    # the forces' normal velocity change over the substep, where it points into the plane
+    # (gravity on a floor); an outward one (springs lifting a resting cloth) is left out of the
+    # reflection: adding it after the impact let a resting, inelastic cloth hop on the ground
+    change_n = wp.min(wp.dot(n, v - v_start), f64(0.0))
+    half_gravity = f64(0.5) * wp.min(wp.dot(n, gravity) * dt, f64(0.0))
+    if wp.length_sq(drift) > f64(0.0):
+        # the exact ballistic update stores the velocity at the substep's end, not its middle:
+        # no half substep of gravity, and the path's drift on top of the straight-line positions
+        half_gravity = f64(0.0)
+    after = change_n * (f64(1.0) - toi / dt)
+    vn_at = wp.dot(n, v_start) + change_n * (toi / dt) + half_gravity
+    vn_plus = wp.max(after, f64(0.0))
+    if restitution > f64(0.0):
+        vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
+    return vn_plus
 
 
 @wp.kernel
@@ -358,20 +393,7 @@ def respond_plane_contacts(
     vn = wp.dot(n, vi)
     toi = wp.clamp((off - wp.dot(n, xi)) / vn, f64(0.0), dt)
 
-    # the forces' normal velocity change over the substep, where it points into the plane
-    # (gravity on a floor); an outward one (springs lifting a resting cloth) is left out of the
-    # reflection: adding it after the impact let a resting, inelastic cloth hop on the ground
-    change_n = wp.min(wp.dot(n, vi - v_start[i]), f64(0.0))
-    half_gravity = f64(0.5) * wp.min(wp.dot(n, gravity) * dt, f64(0.0))
-    if wp.length_sq(drift) > f64(0.0):
-        # the exact ballistic update stores the velocity at the substep's end, not its middle:
-        # no half substep of gravity, and the path's drift on top of the straight-line positions
-        half_gravity = f64(0.0)
-    after = change_n * (f64(1.0) - toi / dt)
-    vn_at = wp.dot(n, v_start[i]) + change_n * (toi / dt) + half_gravity
-    vn_plus = wp.max(after, f64(0.0))
-    if restitution > f64(0.0):
-        vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
+    vn_plus = plane_rebound(n, v_start[i], vi, toi, dt, gravity, drift, restitution)
     vt = vi - n * vn
     jn = vn_plus - vn  # normal velocity change, >= 0
     vt_plus = vt + coulomb_friction(-vt, vt, friction * jn)  # velocity changes of a unit mass

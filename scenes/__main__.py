@@ -74,6 +74,10 @@ def _check_scene_options(parser: argparse.ArgumentParser, name: str, module, arg
         from scenes.sim_common import check_ccd_arguments
 
         check_ccd_arguments(parser, args)
+    check = getattr(module, "check_arguments", None)
+    problem = check(args) if check is not None else None
+    if problem:
+        parser.error(problem)
 
 
 @contextlib.contextmanager

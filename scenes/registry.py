@@ -7,6 +7,8 @@ A scene is a module that defines:
   common ``--out``, ``--seed`` and ``--precision`` (and ``--steps`` if ``SUPPORTS_STEPS``);
 * optionally ``PRECISIONS`` (default ``("float64",)``; the CLI offers exactly these)
   and ``SUPPORTS_STEPS`` (default ``False``);
+* optionally ``check_arguments(args) -> str | None``: a usage error (exit code 2) for options
+  that do not fit together, before anything runs;
 * ``run(args, log) -> dict``: runs, logs to ``log`` (an open :class:`sim.logging.RerunLogger`) and
   returns the JSON-serialisable summary that the CLI prints as its last line.
 
@@ -35,6 +37,7 @@ SCENES: dict[str, str] = {
     "tunnel": "scenes.tunnel",
     "bank_shot": "scenes.bank_shot",
     "cloth_toss": "scenes.cloth_toss",
+    "billiards": "scenes.billiards",
 }
 """Scene name -> module path."""
 

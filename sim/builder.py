@@ -27,9 +27,11 @@ import warp as wp
 from sim.model import COMPONENTS, Model
 from sim.mass_properties import VOLUME_RTOL, check_closed_oriented, lumped_masses, mesh_mass_properties
 from sim.validation import (Pinned, Vec3Like, check_nondegenerate, check_rotation, check_scalar, check_triangles,
-                            check_vec3, check_velocities, check_vertices, compact_mesh, pinned_mask)
+                            check_vec3, check_velocities, check_vertices, compact_mesh, pinned_mask, sphere_overlap)
 
 __all__ = ["ModelBuilder"]
+
+
 
 
 class ModelBuilder:
@@ -70,6 +72,9 @@ class ModelBuilder:
         self._shape_f: list[np.ndarray] = []
         self._shape_body: list[np.ndarray] = []
         self._shape_vn = 0
+
+        self._sphere_body: list[int] = []
+        self._sphere_radius: list[float] = []
 
         self._static_v: list[np.ndarray] = []
         self._static_f: list[np.ndarray] = []
@@ -511,6 +516,73 @@ class ModelBuilder:
         self._components.add("rigid")
         return body
 
+    def add_sphere(
+        self,
+        radius: float,
+        *,
+        density: float | None = None,
+        mass: float | None = None,
+        pos: Vec3Like = (0.0, 0.0, 0.0),
+        rot=None,
+        velocity: Vec3Like = (0.0, 0.0, 0.0),
+        angular_velocity: Vec3Like = (0.0, 0.0, 0.0),
+    ) -> int:
+        """Adds a homogeneous solid sphere: a rigid body with the exact inertia ``2/5 m r^2``.
+
+        Spheres collide with each other, the ground planes and static meshes (:mod:`kernels.spheres`);
+        a model with spheres has no cloth or rigid meshes (:meth:`finalize` says so).
+
+        Args:
+            radius: [m] (> 0).
+            density: [kg/m^3] (> 0); give it or ``mass``, not both.
+            mass: [kg] (> 0).
+            pos: World position of the centre [m], (3,).
+            rot: Quaternion ``(x, y, z, w)``, 3x3 rotation matrix or None (identity).
+            velocity: World linear velocity [m/s], (3,).
+            angular_velocity: World angular velocity [rad/s], (3,).
+
+        Returns:
+            The body index (spheres and rigid bodies share the body numbering).
+        """
+        r = check_scalar(radius, "radius", positive=True)
+        if (density is None) == (mass is None):
+            raise ValueError("add_sphere needs exactly one of density [kg/m^3] and mass [kg]")
+        volume = 4.0 / 3.0 * np.pi * r**3
+        given = "mass" if mass is not None else "density"
+        m = (check_scalar(mass, "mass", positive=True) if mass is not None
+             else check_scalar(density, "density", positive=True) * volume)
+        inertia = 0.4 * m * r * r
+        if not (np.isfinite(m) and m > 0.0 and np.isfinite(1.0 / m) and inertia > 0.0 and np.isfinite(1.0 / inertia)):
+            raise ValueError(f"radius {r!r} m and {given} {mass if mass is not None else density!r} give a mass "
+                             f"({m!r} kg) or moment of inertia ({inertia!r} kg m^2) whose inverse is not finite")
+        p0 = check_vec3(pos, "pos")
+        _, quat = check_rotation(rot)
+        lin = check_vec3(velocity, "velocity")
+        ang = check_vec3(angular_velocity, "angular_velocity")
+        body = len(self._body_mass)
+        self._body_q.append(np.concatenate([p0, quat]))
+        self._body_qd.append(np.concatenate([ang, lin]))
+        self._body_mass.append(m)
+        self._body_inertia.append(np.eye(3) * inertia)
+        self._sphere_body.append(body)
+        self._sphere_radius.append(r)
+        self._components.add("spheres")
+        return body
+
+    def _check_spheres(self) -> None:
+        """Spheres neither overlap (beyond rounding: touching is fine) nor share a model with
+        meshes."""
+        if not self._sphere_body:
+            return
+        others = [what for what, n in (("cloth or particles", self._particle_n), ("rigid meshes", self._shape_vn)) if n]
+        if others:
+            raise ValueError(f"spheres collide with each other, ground planes and static meshes only; this model also "
+                             f"has {' and '.join(others)} (build them in separate models)")
+        problem = sphere_overlap(np.asarray(self._body_q, dtype=np.float64)[self._sphere_body, :3],
+                                 np.asarray(self._sphere_radius), self._sphere_body)
+        if problem:
+            raise ValueError(problem)
+
     # ---------------------------------------------------------------- static colliders
     def add_static_mesh(
         self, vertices: np.ndarray, triangles: np.ndarray, *, pos: Vec3Like = (0.0, 0.0, 0.0), rot=None
@@ -592,6 +664,7 @@ class ModelBuilder:
         def arr(a, dtype, grad=False):
             return wp.array(a, dtype=dtype, device=device, requires_grad=grad and requires_grad)
 
+        self._check_spheres()
         mass = cat(self._particle_mass, (0,))
         inv_mass = np.divide(1.0, mass, out=np.zeros_like(mass), where=mass > 0.0)
         body_mass = np.asarray(self._body_mass, dtype=np.float64)
@@ -627,6 +700,9 @@ class ModelBuilder:
             shape_faces=arr(cat(self._shape_f, (0, 3), np.int32), wp.int32),
             static_vertices=arr(cat(self._static_v, (0, 3)), wp.vec3d),
             static_faces=arr(cat(self._static_f, (0, 3), np.int32), wp.int32),
+            sphere_count=len(self._sphere_body),
+            sphere_body=arr(np.asarray(self._sphere_body, dtype=np.int32), wp.int32),
+            sphere_radius=arr(np.asarray(self._sphere_radius, dtype=np.float64), wp.float64),
             plane_count=len(self._planes),
             planes=arr(np.asarray(self._planes, dtype=np.float64).reshape(-1, 4), wp.vec4d),
             restitution=self._restitution,

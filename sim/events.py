@@ -12,6 +12,12 @@ derivative (:func:`collision.ccd.coplanarity_roots`). A miss is a complex or out
 inside the triangle. Once the collision really happens, the replayed contact's gradients take
 over (the trajectory outputs).
 
+A :class:`SphereEvent` lifts a pair of sphere bodies the same way: their centres' relative
+motion linearised over the window, ``d(s) = d_first + s (d_last - d_first)``, gives the paper's
+quadratic ``|d(s)|^2 = (r_a + r_b)^2`` whose two roots (slots ``t-, t+``) come back in
+``res.sphere_event_roots`` (:func:`sphere_event_roots`). For spheres in free flight (no forces,
+no contact of either inside the window) the linearisation is exact.
+
 Vertices are named by what they belong to: :func:`particle`, :func:`body_vertex` (the k-th
 surface vertex of body b, in the order of the mesh given to ``add_rigid_body`` after unused
 vertices are dropped) and :func:`static_vertex`.
@@ -71,6 +77,42 @@ class Event:
     window: tuple
 
 
+@dataclass(frozen=True)
+class SphereEvent:
+    """A designated pair of sphere bodies and its window.
+
+    Attributes:
+        body_a, body_b: the two spheres' body indices (distinct).
+        window: (first, last) step indices of the rollout, ``0 <= first < last <= steps``.
+    """
+
+    body_a: int
+    body_b: int
+    window: tuple
+
+
+def _check_window(window, steps: int, where: str) -> None:
+    if not isinstance(window, (tuple, list)) or len(window) != 2 \
+            or not all(isinstance(w, (int, np.integer)) and not isinstance(w, bool) for w in window):
+        raise ValueError(f"{where}.window must be two step indices (first, last)")
+    first, last = (int(w) for w in window)
+    if not 0 <= first < last <= steps:
+        raise ValueError(f"{where}.window must satisfy 0 <= first < last <= steps ({steps}), got {window}")
+
+
+def check_sphere_event(model, ev: SphereEvent, steps: int, where: str) -> SphereEvent:
+    """Validates a :class:`SphereEvent` (ValueError naming ``where`` and the field)."""
+    spheres = set(int(b) for b in model.sphere_body.numpy()) if model.sphere_count else set()
+    for field_name in ("body_a", "body_b"):
+        b = getattr(ev, field_name)
+        if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or int(b) not in spheres:
+            raise ValueError(f"{where}.{field_name} must be the body index of a sphere, got {b!r}")
+    if int(ev.body_a) == int(ev.body_b):
+        raise ValueError(f"{where}: body_a and body_b must be two different spheres")
+    _check_window(ev.window, steps, where)
+    return ev
+
+
 def _body_vertex_table(model):
     """(body, k) -> row of ``model.shape_vertices``."""
     if model.shape_vertex_body is None or model.body_count == 0:
@@ -93,8 +135,11 @@ def check_events(model, events, steps: int) -> list[Event]:
     n_static = 0 if model.static_vertices is None else model.static_vertices.shape[0]
     out = []
     for e, ev in enumerate(events):
+        if isinstance(ev, SphereEvent):
+            out.append(check_sphere_event(model, ev, steps, f"events[{e}]"))
+            continue
         if not isinstance(ev, Event):
-            raise ValueError(f"events[{e}] must be a sim.events.Event, got {type(ev).__name__}")
+            raise ValueError(f"events[{e}] must be a sim.events.Event or SphereEvent, got {type(ev).__name__}")
         if ev.kind not in KINDS:
             raise ValueError(f"events[{e}].kind must be one of {KINDS}, got {ev.kind!r}")
         if len(ev.vertices) != 4 or not all(isinstance(v, VertexRef) for v in ev.vertices):
@@ -107,11 +152,7 @@ def check_events(model, events, steps: int) -> list[Event]:
                 raise ValueError(f"events[{e}].vertices: {v} is not a vertex of the model")
         if len(set(ev.vertices)) != 4:
             raise ValueError(f"events[{e}].vertices must be four distinct vertices")
-        if len(ev.window) != 2 or not all(isinstance(w, (int, np.integer)) for w in ev.window):
-            raise ValueError(f"events[{e}].window must be two step indices (first, last)")
-        first, last = (int(w) for w in ev.window)
-        if not 0 <= first < last <= steps:
-            raise ValueError(f"events[{e}].window must satisfy 0 <= first < last <= steps ({steps}), got {ev.window}")
+        _check_window(ev.window, steps, f"events[{e}]")
         out.append(ev)
     return out
 
@@ -200,6 +241,34 @@ def event_outputs(model, events, particle_q, body_q, dt: float, max_derivative: 
         y = x_first + s[:, None, None] * (x_last - x_first)
         coords.append(closest_point_coordinates(kind_edge, y))
     return roots, torch.stack(coords, dim=1)
+
+
+def sphere_event_roots(model, events, body_q, dt: float, max_derivative: float = DEFAULT_MAX_DERIVATIVE,
+                       derivative: str = "mollified"):
+    """Roots [s from the window's start] (E, 2, 2) of the :class:`SphereEvent` s: slots
+    ``(t-, t+)``, (Re, Im), of ``|d_first + s (d_last - d_first)|^2 = R^2`` (``R = r_a + r_b``
+    plus the model's thickness, the distance the contacts keep) times the
+    window's duration (the module docstring), differentiable w.r.t. ``body_q`` (N+1, B, 7)
+    with the mollified derivative (``derivative`` as in :func:`collision.roots.quadratic_roots`).
+    The constant term is factored, ``(|d| - R)(|d| + R)``, exact to rounding near touching."""
+    import torch
+
+    from collision.roots import quadratic_roots
+
+    if not events:
+        return torch.zeros((0, 2, 2), dtype=torch.float64)
+    radius = dict(zip((int(b) for b in model.sphere_body.numpy()), model.sphere_radius.numpy()))
+    rows = []
+    for ev in events:
+        first, last = (int(w) for w in ev.window)
+        d_first = body_q[first, ev.body_a, :3] - body_q[first, ev.body_b, :3]
+        delta = body_q[last, ev.body_a, :3] - body_q[last, ev.body_b, :3] - d_first
+        reach = float(radius[int(ev.body_a)] + radius[int(ev.body_b)]) + float(model.thickness)
+        dist = d_first.norm()
+        rows.append(torch.stack([delta.dot(delta), 2.0 * d_first.dot(delta), (dist - reach) * (dist + reach)]))
+    fractions = quadratic_roots(torch.stack(rows), max_derivative=max_derivative, derivative=derivative)
+    duration = torch.tensor([(ev.window[1] - ev.window[0]) * dt for ev in events], dtype=torch.float64)
+    return fractions * duration[:, None, None]
 
 
 # ------------------------------------------------------------------------------ losses

@@ -239,3 +239,21 @@ def time_series_blueprint(
     else:
         layout = grid_of_time_series("time series", views)  # type: ignore[arg-type]
     return rrb.Blueprint(layout, collapse_panels=True)
+
+
+def save_figure(fig, path: str) -> None:
+    """Saves a matplotlib figure as a PNG at ``path`` atomically: a temporary file next to it,
+    renamed into place (an interrupted save leaves the old file, or none)."""
+    import tempfile
+
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".png")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; a figure is for everyone to read
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise

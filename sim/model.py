@@ -19,7 +19,7 @@ import warp as wp
 
 from sim.collision_mesh import CollisionMesh
 
-COMPONENTS = ("cloth", "rigid", "static", "self_collision")
+COMPONENTS = ("cloth", "rigid", "spheres", "static", "self_collision")
 """What a scene can ask for; the stepper launches only the kernels and collision pairs these need."""
 
 
@@ -60,6 +60,10 @@ class Model:
         shape_vertices: rigid-body surface vertices in body frame (relative to the centre of
             mass) [m], wp.array(vec3d) (Vs,); ``shape_vertex_body`` (Vs,) int32 gives the body.
         shape_faces: rigid surface triangles (indices into shape_vertices), wp.array(int32) (Fs, 3).
+
+        sphere_count: number of sphere bodies (Ns).
+        sphere_body: the body of each sphere, wp.array(int32) (Ns,).
+        sphere_radius: [m], wp.array(float64) (Ns,).
 
         static_vertices: static collider mesh vertices in world frame [m], wp.array(vec3d) (Vg,).
         static_faces: wp.array(int32) (Fg, 3).
@@ -105,6 +109,10 @@ class Model:
     shape_vertices: wp.array | None = None
     shape_vertex_body: wp.array | None = None
     shape_faces: wp.array | None = None
+
+    sphere_count: int = 0
+    sphere_body: wp.array | None = None
+    sphere_radius: wp.array | None = None
 
     static_vertices: wp.array | None = None
     static_faces: wp.array | None = None
@@ -167,6 +175,7 @@ class Model:
             body_inertia=mul(self.body_inertia, f * f),
             body_inv_inertia=mul(self.body_inv_inertia, 1.0 / (f * f)),
             shape_vertices=mul(self.shape_vertices, f),
+            sphere_radius=mul(self.sphere_radius, f),
             static_vertices=mul(self.static_vertices, f),
             planes=mul(self.planes, f),
             thickness=self.thickness * f,

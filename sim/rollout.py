@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +39,8 @@ from sim.contact.response import ImpulseCollisionHandler, check_ccd_options
 from sim.contact.stage import StageObserver
 from collision.roots import DEFAULT_MAX_DERIVATIVE, DERIVATIVES
 from kernels.integrate import inverse_masses
-from sim.events import check_events, event_outputs
+from sim.events import SphereEvent, event_outputs, sphere_event_roots
+from sim.rollout_args import check_args, check_parameters, check_poses
 from sim.integrators.semi_implicit import SemiImplicitIntegrator
 from sim.integrators import check_integrator, make_integrator
 from sim.model import Model, State
@@ -65,6 +65,9 @@ class RolloutResult:
             the window's start] (:mod:`sim.events`).
         event_coords: closest-point coordinates at each root's real part (E, 3, 3): barycentric
             (w1, w2, w3) of the triangle for vertex-face events, (s_a, s_b, 0) for edge-edge.
+        sphere_event_roots: the lifted sphere events' roots (Es, 2, 2): slots (t-, t+), (Re, Im)
+            [s from the window's start], in the order the :class:`sim.events.SphereEvent` s
+            appear in ``events`` (:func:`sim.events.sphere_event_roots`).
         stats: counts of the forward pass: ``contact_substeps`` (substeps with a mesh contact),
             ``refined_substeps`` and ``contact_constrained`` (the implicit integrator's halved
             substeps and particles held in its constrained re-solves),
@@ -72,7 +75,8 @@ class RolloutResult:
             ``failsafe_substeps`` (impact zones formed; their rigid motion is taped),
             ``largest_system`` (most unknowns
             of one impulse solve), ``unsettled_active_sets`` (impulse solves whose active set did
-            not settle within the repair budget).
+            not settle within the repair budget); with spheres, ``unresolved_sphere_substeps``
+            (substeps whose sphere pairs still acted after the stage's last pass).
     """
 
     particle_q: torch.Tensor
@@ -81,78 +85,8 @@ class RolloutResult:
     body_qd: torch.Tensor
     event_roots: torch.Tensor
     event_coords: torch.Tensor = None
+    sphere_event_roots: torch.Tensor = None
     stats: dict = field(default_factory=dict)
-
-
-def _check_velocities(value, count: int, width: int, name: str) -> torch.Tensor | None:
-    if value is None:
-        return None
-    if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch tensor of shape ({count}, {width}), got {type(value).__name__}")
-    if value.dtype != torch.float64:
-        raise ValueError(f"{name} must be float64, got {value.dtype}")
-    if tuple(value.shape) != (count, width):
-        raise ValueError(f"{name} must have shape ({count}, {width}), got {tuple(value.shape)}")
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} must be finite (it holds NaN or inf)")
-    return value
-
-
-def _check_parameter(value, count: int, name: str, unit: str) -> torch.Tensor | None:
-    """A per-particle or per-spring parameter: None, or a finite, non-negative float64 torch
-    tensor of shape (count,)."""
-    if value is None:
-        return None
-    if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch tensor of shape ({count},) [{unit}], got {type(value).__name__}")
-    if value.dtype != torch.float64:
-        raise ValueError(f"{name} must be float64, got {value.dtype}")
-    if tuple(value.shape) != (count,):
-        raise ValueError(f"{name} must have shape ({count},), got {tuple(value.shape)}")
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} must be finite (it holds NaN or inf)")
-    if bool((value < 0.0).any()):
-        raise ValueError(f"{name} must be >= 0 [{unit}], got a negative value")
-    return value
-
-
-def _check_parameters(model: Model, particle_mass, spring_stiffness):
-    mass = _check_parameter(particle_mass, model.particle_count, "particle_mass", "kg")
-    if mass is not None and model.particle_count:
-        pinned = model.particle_mass.numpy() == 0.0
-        zero = mass.detach().cpu().numpy() == 0.0
-        if np.any(pinned != zero):
-            i = int(np.flatnonzero(pinned != zero)[0])
-            raise ValueError(
-                f"particle_mass must keep the model's pinned particles (mass 0) pinned and the others free "
-                f"(mass > 0): particle {i} is {'pinned' if pinned[i] else 'free'} in the model")
-    stiffness = _check_parameter(spring_stiffness, model.spring_count, "spring_stiffness", "N/m")
-    return mass, stiffness
-
-
-def _check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative):
-    if not isinstance(model, Model):
-        raise ValueError(f"model must be a sim.model.Model, got {type(model).__name__}")
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
-    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
-        raise ValueError(f"dt must be a positive finite number [s], got {dt!r}")
-    dt_f = float(dt)
-    if not math.isfinite(dt_f) or dt_f <= 0.0:
-        raise ValueError(f"dt must be a positive finite number [s], got {dt!r}")
-    if checkpoint_every is not None and (
-        isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, (int, np.integer)) or checkpoint_every < 1
-    ):
-        raise ValueError(f"checkpoint_every must be None or an integer >= 1, got {checkpoint_every!r}")
-    if isinstance(max_derivative, bool) or not isinstance(max_derivative, (int, float, np.integer, np.floating)) \
-            or not float(max_derivative) > 0.0:
-        raise ValueError(f"max_derivative must be a positive number, got {max_derivative!r}")
-    events = check_events(model, events, int(steps))
-    pqd = _check_velocities(particle_qd, model.particle_count, 3, "particle_qd")
-    bqd = _check_velocities(body_qd, model.body_count, 6, "body_qd")
-    return int(steps), dt_f, int(substeps), pqd, bqd, events
 
 
 class _CountingHandler(StageObserver):
@@ -195,6 +129,7 @@ class _Runner:
         self.collisions = collisions
         self.max_derivative = max_derivative
         self.handler = None
+        self.spheres = None  # the sphere stage (models with spheres)
         self.tape = None
         self.param_tape = None  # the inverse masses from the masses (when their gradient is wanted)
         self.params: dict[str, wp.array] = {}  # the parameter arrays whose gradients are wanted
@@ -207,6 +142,12 @@ class _Runner:
     def _integrator(self, requires_grad: bool) -> SemiImplicitIntegrator:
         integ = make_integrator(self.model, self.integrator, requires_grad=requires_grad, **self.integrator_options)
         integ.divergence_guard = self.guard
+        if integ.sphere_contacts is not None:
+            # one stage per rollout: its counters run over the forward's substeps
+            if self.spheres is None:
+                self.spheres = integ.sphere_contacts
+            integ.sphere_contacts = self.spheres
+            self.spheres.max_derivative = self.max_derivative
         if self.collisions:
             if self.handler is None:
                 self.handler = ImpulseCollisionHandler(self.model, differentiable=True, max_derivative=self.max_derivative,
@@ -247,13 +188,15 @@ class _Runner:
                 self.params["spring_stiffness"] = k
         self.model = dataclasses.replace(m, **changes)
 
-    def _initial_state(self, particle_qd, body_qd, requires_grad: bool) -> State:
+    def _initial_state(self, particle_qd, body_qd, requires_grad: bool, body_q=None) -> State:
         s = self.model.state(requires_grad=requires_grad)
         d = self.model.device
         if particle_qd is not None:
             s.particle_qd = wp.array(particle_qd.detach().cpu().numpy(), dtype=wp.vec3d, device=d, requires_grad=requires_grad)
         if body_qd is not None:
             s.body_qd = wp.array(body_qd.detach().cpu().numpy(), dtype=wp.spatial_vectord, device=d, requires_grad=requires_grad)
+        if body_q is not None:
+            s.body_q = wp.array(body_q.detach().cpu().numpy(), dtype=wp.transformd, device=d, requires_grad=requires_grad)
         return s
 
     @staticmethod
@@ -299,10 +242,10 @@ class _Runner:
         return states if requires_grad else [s]
 
     def forward(self, particle_qd, body_qd, requires_grad: bool, particle_mass=None, spring_stiffness=None,
-                mass_grad: bool = False, stiffness_grad: bool = False):
+                mass_grad: bool = False, stiffness_grad: bool = False, body_q=None):
         self._set_parameters(particle_mass, spring_stiffness, mass_grad and requires_grad,
                              stiffness_grad and requires_grad)
-        start = self._initial_state(particle_qd, body_qd, requires_grad and self.checkpoint_every is None)
+        start = self._initial_state(particle_qd, body_qd, requires_grad and self.checkpoint_every is None, body_q)
         self.guard = DivergenceGuard(self.model, start, self.steps * self.dt)
         record = [start.numpy()]
         self.segment_starts = {0: record[0]}
@@ -317,6 +260,8 @@ class _Runner:
             self.stats["divergence_message"] = str(exc)
             self.tape, self.states = None, []
             record.extend([record[-1]] * (self.steps + 1 - len(record)))
+        if self.spheres is not None:
+            self.stats["unresolved_sphere_substeps"] = self.spheres.unresolved_substeps
         if self.handler is not None:
             self.stats["failsafe_substeps"] = self.handler.failsafe_count
             self.stats["ccd_events"] = self.handler.ccd_events
@@ -352,7 +297,8 @@ class _Runner:
         arr.grad.assign(wp.array(arr.grad.numpy() + grad, dtype=arr.dtype, device=arr.device))
 
     def backward(self, grads: dict):
-        """Adjoints of the initial velocities (particles (P, 3), bodies (B, 6)) and of the
+        """Adjoints of the initial velocities (particles (P, 3), bodies (B, 6)), of the initial
+        body poses (B, 7) and of the
         parameters (``{"particle_mass": (P,), "spring_stiffness": (S,)}``, those whose gradient
         was asked for) for the output adjoints ``grads[name]`` of shape (N+1, ...).
 
@@ -405,20 +351,22 @@ class _Runner:
                 self.param_tape.zero()
         if "spring_stiffness" in self.params:
             params["spring_stiffness"] = param_sum["spring_stiffness"]
-        return carry["particle_qd"], carry["body_qd"], params
+        return carry["particle_qd"], carry["body_qd"], carry["body_q"], params
 
 
 class _RolloutFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, particle_qd, body_qd, particle_mass, spring_stiffness, runner, has_particle, has_body, has_mass,
-                has_stiffness):
-        needs = any(ctx.needs_input_grad[:4])
+    def forward(ctx, particle_qd, body_qd, particle_mass, spring_stiffness, body_q, runner, has_particle, has_body,
+                has_mass, has_stiffness, has_pose):
+        needs = any(ctx.needs_input_grad[:5])
         out = runner.forward(particle_qd if has_particle else None, body_qd if has_body else None, needs,
                              particle_mass if has_mass else None, spring_stiffness if has_stiffness else None,
                              mass_grad=has_mass and ctx.needs_input_grad[2],
-                             stiffness_grad=has_stiffness and ctx.needs_input_grad[3])
+                             stiffness_grad=has_stiffness and ctx.needs_input_grad[3],
+                             body_q=body_q if has_pose else None)
         ctx.runner = runner
-        ctx.input_devices = (particle_qd.device, body_qd.device, particle_mass.device, spring_stiffness.device)
+        ctx.input_devices = (particle_qd.device, body_qd.device, particle_mass.device, spring_stiffness.device,
+                             body_q.device)
         ctx.shapes = {k: v.shape for k, v in out.items()}
         return tuple(torch.from_numpy(np.ascontiguousarray(out[k])) for k in ("particle_q", "particle_qd", "body_q", "body_qd"))
 
@@ -427,17 +375,18 @@ class _RolloutFunction(torch.autograd.Function):
         def arr(g, name):
             return np.zeros(ctx.shapes[name]) if g is None else g.detach().cpu().numpy().astype(np.float64)
 
-        gp, gb, params = ctx.runner.backward({
+        gp, gb, gpose, params = ctx.runner.backward({
             "particle_q": arr(g_q, "particle_q"), "particle_qd": arr(g_qd, "particle_qd"),
             "body_q": arr(g_bq, "body_q"), "body_qd": arr(g_bqd, "body_qd"),
         })
         # gradients on the inputs' devices (the rollout itself computes on the model's device)
         gp = torch.from_numpy(np.ascontiguousarray(gp)).to(ctx.input_devices[0])
         gb = torch.from_numpy(np.ascontiguousarray(gb)).to(ctx.input_devices[1])
+        gpose = torch.from_numpy(np.ascontiguousarray(gpose)).to(ctx.input_devices[4])
         gm, gk = (None if name not in params else torch.from_numpy(np.ascontiguousarray(params[name])).to(device)
                   for name, device in (("particle_mass", ctx.input_devices[2]),
                                        ("spring_stiffness", ctx.input_devices[3])))
-        return gp, gb, gm, gk, None, None, None, None, None
+        return gp, gb, gm, gk, gpose, None, None, None, None, None, None
 
 
 def rollout(
@@ -459,6 +408,7 @@ def rollout(
     spring_stiffness: torch.Tensor | None = None,
     ccd_options: dict | None = None,
     on_divergence: str = "raise",
+    body_q: torch.Tensor | None = None,
 ) -> RolloutResult:
     """Simulates ``steps`` steps of ``dt`` [s] (each split into ``substeps``) from the model's
     initial state, differentiably.
@@ -474,7 +424,9 @@ def rollout(
         events: lifted events, a sequence of :class:`sim.events.Event` (designated vertex-face
             or edge-edge pairs and a window of steps): their roots and closest-point
             coordinates come back in ``event_roots`` / ``event_coords``, differentiable with the
-            mollified derivative bounded by ``max_derivative``.
+            mollified derivative bounded by ``max_derivative``; and of
+            :class:`sim.events.SphereEvent` (two sphere bodies and a window), whose quadratic's
+            roots come back in ``sphere_event_roots``.
         collisions: mesh collisions (cloth, rigid, static, vertex-plane) as the scenes handle
             them; the integrator's particle-plane stage is always on (with collisions it keeps
             the handler's separation, without them the model's thickness).
@@ -502,6 +454,9 @@ def rollout(
             ``tolerance``; see :class:`sim.contact.response.ImpulseCollisionHandler`); None: the
             float64 kernels as written. Decisions only: the replayed ``t*`` and its derivative
             come from the float64 root solver either way.
+        body_q: initial body poses (centre of mass [m], unit quaternion x y z w), torch float64
+            (B, 7); None = the model's. Its gradient is the pose's adjoint as stored (the
+            quaternion's four components, not projected onto rotations).
         on_divergence: what a diverged rollout does (a position or velocity not finite, or a
             position farther than :data:`sim.stability.BOUNDS_FACTOR` times the scene's reach
             from its centre, checked every substep; or a substep past the contact limits,
@@ -521,7 +476,8 @@ def rollout(
 
     Returns:
         :class:`RolloutResult`; its tensors are differentiable w.r.t. ``particle_qd``,
-        ``body_qd``, ``particle_mass`` and ``spring_stiffness`` when those require gradients.
+        ``body_qd``, ``body_q``, ``particle_mass`` and ``spring_stiffness`` when those require
+        gradients.
 
     Raises:
         ValueError: naming the argument, for wrong types, shapes, dtypes, non-finite values,
@@ -529,13 +485,14 @@ def rollout(
             ``steps < 1``, ``substeps < 1`` or ``dt <= 0``; before anything runs.
         sim.stability.SimulationDiverged: when the rollout diverges (see ``on_divergence``).
     """
-    steps, dt, substeps, particle_qd, body_qd, events = _check_args(
+    steps, dt, substeps, particle_qd, body_qd, events = check_args(
         model, steps, dt, substeps, particle_qd, body_qd, events, checkpoint_every, max_derivative)
     if event_derivative not in DERIVATIVES:
         raise ValueError(f"event_derivative must be one of {DERIVATIVES}, got {event_derivative!r}")
     check_integrator(integrator, integrator_options)
     ccd_options = check_ccd_options(ccd_options)
-    particle_mass, spring_stiffness = _check_parameters(model, particle_mass, spring_stiffness)
+    particle_mass, spring_stiffness = check_parameters(model, particle_mass, spring_stiffness)
+    body_q = check_poses(body_q, model)
     if on_divergence not in ("raise", "return"):
         raise ValueError(f"on_divergence must be 'raise' or 'return', got {on_divergence!r}")
     runner = _Runner(model, steps, dt, substeps, checkpoint_every, collisions, float(max_derivative), integrator,
@@ -546,9 +503,15 @@ def rollout(
     b_in = body_qd if has_b else torch.zeros((model.body_count, 6), dtype=torch.float64)
     m_in = particle_mass if has_m else torch.zeros(model.particle_count, dtype=torch.float64)
     k_in = spring_stiffness if has_k else torch.zeros(model.spring_count, dtype=torch.float64)
-    q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, m_in, k_in, runner, has_p, has_b, has_m, has_k)
-    roots, coords = event_outputs(model, events, q, bq, dt, float(max_derivative), event_derivative)
+    has_pose = body_q is not None
+    pose_in = body_q if has_pose else torch.zeros((model.body_count, 7), dtype=torch.float64)
+    q, qd, bq, bqd = _RolloutFunction.apply(p_in, b_in, m_in, k_in, pose_in, runner, has_p, has_b, has_m, has_k,
+                                            has_pose)
+    mesh_events = [ev for ev in events if not isinstance(ev, SphereEvent)]
+    sphere_events = [ev for ev in events if isinstance(ev, SphereEvent)]
+    roots, coords = event_outputs(model, mesh_events, q, bq, dt, float(max_derivative), event_derivative)
+    sphere_roots = sphere_event_roots(model, sphere_events, bq, dt, float(max_derivative), event_derivative)
     return RolloutResult(
         particle_q=q, particle_qd=qd, body_q=bq, body_qd=bqd,
-        event_roots=roots, event_coords=coords, stats=dict(runner.stats),
+        event_roots=roots, event_coords=coords, sphere_event_roots=sphere_roots, stats=dict(runner.stats),
     )

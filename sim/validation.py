@@ -187,3 +187,21 @@ def pinned_mask(pinned, positions: np.ndarray, name: str = "pinned") -> np.ndarr
     mask = np.zeros(n, dtype=bool)
     mask[a] = True
     return mask
+
+
+SPHERE_TOUCH_RTOL = 1.0e-12
+"""Spheres may overlap at the start by this fraction of the sum of their radii (rounding: rows
+of touching balls computed in floating point overlap by ~1e-16 m)."""
+
+
+def sphere_overlap(centres: np.ndarray, radii: np.ndarray, bodies) -> str | None:
+    """A message naming the first two spheres (by body index) whose centres (N, 3) [m] and radii
+    (N,) [m] overlap beyond :data:`SPHERE_TOUCH_RTOL` (touching is fine), or None."""
+    reach = radii[:, None] + radii[None]
+    gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - reach
+    gap[np.diag_indices(len(radii))] = np.inf
+    bad = np.argwhere(gap < -SPHERE_TOUCH_RTOL * reach)
+    if not len(bad):
+        return None
+    i, j = bad[0]
+    return f"spheres {int(bodies[i])} and {int(bodies[j])} overlap by {-gap[i, j]:.3g} m at the start (touching is fine)"

@@ -81,7 +81,8 @@ def test_suite_names_every_check():
     assert list(P.CHECKS) == [
         "flat_drop_plane", "flat_drop_static_box", "flat_drop_rigid_box", "slope_static", "slope_sliding",
         "rest_plane", "rest_box", "stack", "restitution_sweep", "head_on", "free_rotation", "cloth_flat_box",
-        "cloth_hanging", "cloth_on_sphere", "sliding_friction", "sphere_bounce"]
+        "cloth_hanging", "cloth_on_sphere", "sliding_friction", "sphere_bounce", "ball_bounce", "ball_roll",
+        "ball_head_on"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -187,6 +188,14 @@ def test_sphere_bounce_apex_ratio_at_every_substep_count():
     for substeps in (4, SUBSTEPS, 32):
         _assert_passed(P.check_sphere_bounce(response=RESPONSE, substeps=substeps))
     assert abs(_relative_error(P.check_sphere_bounce(response=RESPONSE, substeps=SUBSTEPS))) < 1e-4
+
+
+def test_sphere_bodies():
+    """The sphere rows: a sphere body bounces to e^2 of its height (the particles' plane law),
+    slides into rolling at 5/7 of its speed, and swaps velocities head on."""
+    _assert_passed(P.check_ball_bounce(response=RESPONSE, substeps=SUBSTEPS))
+    _assert_passed(P.check_ball_roll(response=RESPONSE, substeps=SUBSTEPS))
+    _assert_passed(P.check_ball_head_on(response=RESPONSE, substeps=SUBSTEPS))
 
 
 @pytest.mark.parametrize("restitution", [0.0, 1.0])

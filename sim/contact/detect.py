@@ -77,7 +77,8 @@ class ContactDetection:
             self_collision.append(False)
             static.append(True)
         self.broad_phase = None
-        if self.n_vertices and len(faces):
+        # static meshes alone (a model of spheres and walls) have nothing to collide with
+        if self.n_vertices and len(faces) and (self.n_particles or mesh.shape_count):
             self.broad_phase = BroadPhase(
                 faces, edges, num_vertices=self.n_vertices,
                 groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),

@@ -46,7 +46,7 @@ from kernels.implicit import (
     strain_growth,
     sum_kernel,
 )
-from sim.integrators.semi_implicit import SemiImplicitIntegrator, requires_grad_of, copy_state
+from sim.integrators.semi_implicit import SemiImplicitIntegrator, copy_state, requires_grad_of, shares_arrays
 from sim.model import Model, State
 
 DEFAULT_TOLERANCE = 1.0e-8
@@ -126,6 +126,8 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                  max_iterations: int = DEFAULT_MAX_ITERATIONS, contact_passes: int = DEFAULT_CONTACT_PASSES,
                  max_strain_step: float | None = DEFAULT_MAX_STRAIN_STEP,
                  max_refinements: int = DEFAULT_MAX_REFINEMENTS):
+        if model.sphere_count:
+            raise ValueError("the implicit integrator steps cloth; a model with spheres takes the semi-implicit one")
         super().__init__(model, requires_grad)
         check_options(tolerance, max_iterations, contact_passes, max_strain_step, max_refinements)
         self.max_strain_step = None if max_strain_step is None else float(max_strain_step)
@@ -264,7 +266,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
             return super().step(state_in, state_out, dt, substeps)
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
-        if state_out is state_in or state_out.particle_q is state_in.particle_q:
+        if shares_arrays(state_in, state_out):
             raise ValueError("state_out must not alias state_in (the tape needs both)")
         h = float(dt) / substeps
         handler = self.collision_handler

@@ -44,6 +44,7 @@ from kernels.integrate import (
     integrate_particles,
     respond_plane_contacts,
 )
+from sim.contact.spheres import SphereContacts
 from sim.model import Model, State
 from sim.stability import DivergenceGuard, SimulationDiverged
 
@@ -63,6 +64,12 @@ def copy_state(src: State, dst: State, names=("particle_q", "particle_qd", "body
                 host(b)[:] = host(a)
             else:
                 wp.copy(b, a)
+
+
+def shares_arrays(a: State, b: State) -> bool:
+    """Whether two States share a non-empty array (a step must not write the State it reads)."""
+    return a is b or any(getattr(a, n) is getattr(b, n) and getattr(a, n).shape[0] > 0
+                         for n in ("particle_q", "particle_qd", "body_q", "body_qd"))
 
 
 def requires_grad_of(state: State) -> bool:
@@ -100,6 +107,9 @@ class SemiImplicitIntegrator:
     def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False):
         if not isinstance(exact_gravity, bool):
             raise ValueError(f"exact_gravity must be True or False, got {exact_gravity!r}")
+        if exact_gravity and model.sphere_count:
+            raise ValueError("exact_gravity is not available for models with spheres (their contacts use the "
+                             "semi-implicit positions)")
         drag = model.particle_drag
         if not (isinstance(drag, (int, float)) and np.isfinite(drag) and drag >= 0.0):
             raise ValueError(f"model.particle_drag must be a finite rate >= 0 [1/s], got {drag!r}")
@@ -108,6 +118,7 @@ class SemiImplicitIntegrator:
         self.exact_gravity = exact_gravity
         self.device = model.device
         self.collision_handler: CollisionHandler | None = None
+        self.sphere_contacts = SphereContacts(model) if model.sphere_count else None
         self.gravity = wp.vec3d(*(float(g) for g in np.asarray(model.gravity, dtype=np.float64)))
 
         self._spring_indices = None
@@ -120,6 +131,7 @@ class SemiImplicitIntegrator:
             # no external body wrenches yet: a constant zero array (never written)
             self._body_f = wp.zeros(model.body_count, dtype=wp.spatial_vectord, device=self.device)
         self._scratch: list[State] = []
+        self._empty: dict = {}
         self._stages: dict[str, State] = {}
         self._scratch_forces = None
         self._scratch_plane_index = None
@@ -128,13 +140,20 @@ class SemiImplicitIntegrator:
 
     # ------------------------------------------------------------------ allocation
     def new_state(self, requires_grad: bool) -> State:
+        """A State of zeros (fresh arrays; the empty arrays of a model without particles or
+        bodies are shared: nothing ever writes or reads them)."""
         m, d = self.model, self.device
-        return State(
-            particle_q=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-            particle_qd=wp.zeros(m.particle_count, dtype=wp.vec3d, device=d, requires_grad=requires_grad),
-            body_q=wp.zeros(m.body_count, dtype=wp.transformd, device=d, requires_grad=requires_grad),
-            body_qd=wp.zeros(m.body_count, dtype=wp.spatial_vectord, device=d, requires_grad=requires_grad),
-        )
+
+        def zeros(count, dtype):
+            if count == 0:
+                key = (dtype, requires_grad)
+                if key not in self._empty:
+                    self._empty[key] = wp.zeros(0, dtype=dtype, device=d, requires_grad=requires_grad)
+                return self._empty[key]
+            return wp.zeros(count, dtype=dtype, device=d, requires_grad=requires_grad)
+
+        return State(particle_q=zeros(m.particle_count, wp.vec3d), particle_qd=zeros(m.particle_count, wp.vec3d),
+                     body_q=zeros(m.body_count, wp.transformd), body_qd=zeros(m.body_count, wp.spatial_vectord))
 
     def _scratch_state(self, k: int) -> State:
         while len(self._scratch) <= k:
@@ -183,7 +202,7 @@ class SemiImplicitIntegrator:
         """
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
-        if state_out is state_in or state_out.particle_q is state_in.particle_q:
+        if shares_arrays(state_in, state_out):
             raise ValueError("state_out must not alias state_in (the tape needs both)")
         h = float(dt) / substeps
         requires_grad = requires_grad_of(state_in) if self.requires_grad is None else bool(self.requires_grad)
@@ -211,10 +230,12 @@ class SemiImplicitIntegrator:
         planes = m.particle_count > 0 and m.plane_count > 0
         handler = self.collision_handler
 
-        # where the prediction goes: straight into s_out unless a collision stage follows
+        spheres = self.sphere_contacts
+        # where the prediction goes: straight into s_out unless a collision stage follows (the
+        # sphere stage returns fresh arrays when a contact changes the prediction)
         if handler is None and not planes:
             pred = s_out
-        elif handler is None:  # planes only touch particles: bodies go straight to s_out
+        elif handler is None and spheres is None:  # planes only touch particles: bodies go straight to s_out
             pred = self._stage_state("pred", requires_grad, bodies=s_out)
         else:
             pred = self._stage_state("pred", requires_grad)
@@ -240,15 +261,22 @@ class SemiImplicitIntegrator:
                 outputs=[pred.body_q, pred.body_qd],
                 device=d,
             )
+        cur = pred
+        if spheres is not None:
+            body_q, body_qd = spheres(s_in, pred, h, requires_grad)
+            cur = State(particle_q=pred.particle_q, particle_qd=pred.particle_qd, body_q=body_q, body_qd=body_qd)
+            if pred is s_out and body_q is not s_out.body_q:
+                if requires_grad:  # fresh arrays: s_out takes them (nothing to copy)
+                    s_out.body_q, s_out.body_qd = body_q, body_qd
+                else:
+                    copy_state(cur, s_out, names=("body_q", "body_qd"), taped=False)
         if pred is s_out:
             return
-
-        cur = pred
         if planes:
             if handler is None:
                 out = s_out
             else:
-                out = self._stage_state("planes", requires_grad, bodies=pred)
+                out = self._stage_state("planes", requires_grad, bodies=cur)
             self.collide_planes(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q, out.particle_qd, h,
                                requires_grad, self.plane_separation())
             cur = out

@@ -1,0 +1,544 @@
+"""Scene ``billiards``: DiffTaichi's billiards, from a hit or from a miss.
+
+The setup of taichi-dev/difftaichi ``examples/billiards.py``: 11 balls of radius 0.03 m and
+equal mass (a cue ball and a rack of 4 rows, 10 balls) in the plane z = 0, without gravity,
+friction or walls; restitution 0.8; 1023 steps of 0.003 s. The cue starts at (0.1, 0.5) m with
+velocity (0.3, 0) m/s; the target is the rack's last ball (from (0.68, 0.617) m) and the goal is
+(0.9, 0.75) m. The loss is the squared distance of the target's final position from the goal;
+the cue's initial position and velocity (4 unknowns) are optimised. The rack uses DiffTaichi's
+coordinates as they are: neighbours in a row touch (their distance is ``2 r`` to rounding, which
+the builder accepts) and rest, so they exert nothing until something moves them.
+
+Here the balls are sphere bodies (:meth:`sim.builder.ModelBuilder.add_sphere`): every pair's time
+of impact is the smaller root of the quadratic ``|d + t dv|^2 = (2 r)^2``, from the project's
+root solver with the mollified derivative, and the rollout's gradient is exact for its
+trajectory (DiffTaichi's clamped linear estimate of the time of impact is not).
+
+Starts (``--start``): ``default`` (DiffTaichi's), ``miss-above`` (velocity (0.3, 0.1) m/s: it
+passes above the rack), ``miss-away`` (velocity (-0.3, 0) m/s), ``seeded`` (``--seed S``: a cue
+position and velocity drawn at random whose straight path touches no ball, :func:`seeded_start`),
+or any shot with ``--cue-pos X Y --cue-vel VX VY``.
+
+Methods (``--methods``), at most ``--iters`` rollouts each, stopping once the target is within
+``TARGET_TOLERANCE`` (5 mm) of the goal:
+
+* **proposed**: while the target does not move, the loss of a lifted sphere event
+  (:class:`sim.events.SphereEvent`) pulls a moving ball's path onto the target
+  (:func:`lifted_pair` says which ball: the one whose last straight path passes closest to it;
+  :func:`miss_loss`), and the contact's normal towards the direction that sends the target to
+  the goal (:func:`aim_loss`), optimised with Adam (:data:`MISS_LEARNING_RATE`); once the target
+  moves, the loss is the
+  squared distance, optimised with ``--optimizer`` (``gd``: DiffTaichi's plain gradient descent,
+  learning rate 0.01; ``adam``). An iterate of that phase after which the target no longer moves
+  is rejected: back to the last iterate that moved it, with half the step. An iterate that puts
+  the cue inside a rack ball is projected out of it (:func:`outside_the_rack`), for every
+  method.
+* **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
+  through the real contacts only: DiffTaichi's method. From a miss its gradient is exactly zero;
+  a run stops at the first exactly zero gradient (``zero_gradient_at``), since every later
+  iterate would be the same.
+* **cma**: CMA-ES on the proposed method's loss values (a miss costs ``MISS_OFFSET`` more than
+  any hit) with the same number of rollouts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+from scenes.optim import parse_methods, run_cma
+from scenes.registry import int_at_least
+
+NAME = "billiards"
+DESCRIPTION = "DiffTaichi's billiards: move the last rack ball to a goal from any shot, misses included"
+PRECISIONS = ("float64",)
+SUPPORTS_STEPS = False
+
+RADIUS = 0.03  # [m]
+MASS = 1.0  # [kg]
+RESTITUTION = 0.8
+DT = 0.003  # [s]
+STEPS = 1023
+ROWS = 4
+GOAL = (0.9, 0.75)  # [m]
+STARTS = {"default": (0.1, 0.5, 0.3, 0.0), "miss-above": (0.1, 0.5, 0.3, 0.1), "miss-away": (0.1, 0.5, -0.3, 0.0)}
+"""Cue position (x, y) [m] and velocity (vx, vy) [m/s] of the named starts."""
+TARGET_TOLERANCE = 0.005  # [m]
+LEARNING_RATE = 0.01
+MISS_LEARNING_RATE = 0.03
+"""Adam's step in the miss phase [m, m/s]: larger than DiffTaichi's 0.01, since a miss may
+have to turn the shot around (``miss-away``); the hit phase uses :data:`LEARNING_RATE`."""
+MISS_OFFSET = 1.0  # [m^2] CMA-ES: a shot that leaves the target still costs this plus its event loss
+CMA_SIGMA = 0.05  # CMA-ES's initial step [m, m/s]
+METHODS = ("proposed", "baseline", "cma")
+OPTIMIZERS = ("gd", "adam")
+SEEDED_POSITION = ((0.05, 0.4), (0.1, 0.9))  # [m] ranges of a seeded cue position (x, y)
+SEEDED_SPEED = (0.2, 0.5)  # [m/s]
+
+
+def rack_positions(rows: int = ROWS) -> np.ndarray:
+    """Ball centres of a rack of ``rows`` rows (DiffTaichi's layout), (rows (rows + 1) / 2, 2) [m]:
+    row ``i`` holds ``i + 1`` balls at ``x = 0.5 + 2 r i``, ``y = 0.5 + 2 r j - 0.7 r i``."""
+    return np.array([(0.5 + 2 * RADIUS * i, 0.5 + 2 * RADIUS * j - 0.7 * RADIUS * i)
+                     for i in range(rows) for j in range(i + 1)], dtype=np.float64)
+
+
+def build(rows: int = ROWS, cue=STARTS["default"]):
+    """The model: the cue (body 0) and the rack (bodies 1..); the target is the last body."""
+    from sim.builder import ModelBuilder
+
+    b = ModelBuilder(gravity=0.0)
+    b.set_contact(restitution=RESTITUTION, friction=0.0, thickness=0.0)
+    b.add_sphere(RADIUS, mass=MASS, pos=(cue[0], cue[1], 0.0), velocity=(cue[2], cue[3], 0.0))
+    for x, y in rack_positions(rows):
+        b.add_sphere(RADIUS, mass=MASS, pos=(x, y, 0.0))
+    return b.finalize()
+
+
+def target_of(model) -> int:
+    return model.body_count - 1
+
+
+def cue_path_gap(model, shot) -> float:
+    """The smallest gap [m] between the cue's straight path over the whole run (no contact) and
+    any other ball: positive when the shot touches nothing."""
+    start = np.asarray(shot[:2], dtype=np.float64)
+    travel = np.asarray(shot[2:], dtype=np.float64) * DT * STEPS
+    centres = model.body_q.numpy()[1:, :2]
+    d0 = start[None] - centres
+    denom = float(travel @ travel)
+    s = np.clip(-(d0 @ travel) / denom, 0.0, 1.0) if denom > 0.0 else np.zeros(len(centres))
+    return float(np.min(np.linalg.norm(d0 + s[:, None] * travel[None], axis=1)) - 2 * RADIUS)
+
+
+def outside_the_rack(shot, rows: int = ROWS) -> tuple[float, float, float, float]:
+    """``shot`` with the cue's position moved out of any rack ball it overlaps, radially to
+    touching (the projection of an optimiser's iterate onto the shots that can be played)."""
+    x = np.asarray(shot, dtype=np.float64).copy()
+    rack = rack_positions(rows)
+    for _ in range(len(rack)):
+        offsets = x[None, :2] - rack
+        gaps = np.linalg.norm(offsets, axis=1) - 2 * RADIUS
+        k = int(np.argmin(gaps))
+        if gaps[k] >= 0.0:
+            break
+        norm = float(np.linalg.norm(offsets[k]))
+        direction = offsets[k] / norm if norm > 0.0 else np.array([-1.0, 0.0])
+        x[:2] = rack[k] + direction * 2 * RADIUS * (1.0 + 1e-9)
+    return tuple(float(c) for c in x)
+
+
+def seeded_start(model, seed: int) -> tuple[float, float, float, float]:
+    """A shot drawn from ``seed`` whose straight path touches no ball: a cue position in
+    :data:`SEEDED_POSITION`, a speed in :data:`SEEDED_SPEED` and any direction."""
+    rng = np.random.default_rng(seed)
+    for _ in range(1000):
+        x, y = rng.uniform(*SEEDED_POSITION[0]), rng.uniform(*SEEDED_POSITION[1])
+        speed, angle = rng.uniform(*SEEDED_SPEED), rng.uniform(-np.pi, np.pi)
+        shot = (x, y, speed * np.cos(angle), speed * np.sin(angle))
+        if cue_path_gap(model, shot) > 0.0:
+            return tuple(float(c) for c in shot)
+    raise RuntimeError(f"billiards: no missing shot found for seed {seed}")
+
+
+def simulate(model, shot, events=(), grad: bool = False):
+    """(shot tensor (4,), rollout result) of ``shot``: a tensor (x, y, vx, vy) or a sequence."""
+    import torch
+
+    from sim.rollout import rollout
+
+    z = shot if isinstance(shot, torch.Tensor) else torch.tensor(np.asarray(shot, dtype=np.float64), requires_grad=grad)
+    poses = torch.from_numpy(model.body_q.numpy().copy())
+    twists = torch.from_numpy(model.body_qd.numpy().copy())
+    zero = torch.zeros(1, dtype=torch.float64)
+    cue_pose = torch.cat([z[:2], zero, poses[0, 3:]])
+    cue_twist = torch.cat([zero, zero, zero, z[2:], zero])
+    body_q = torch.cat([cue_pose[None], poses[1:]])
+    body_qd = torch.cat([cue_twist[None], twists[1:]])
+    return z, rollout(model, STEPS, DT, 1, body_qd=body_qd, body_q=body_q, events=list(events))
+
+
+def distance_loss(model, res):
+    import torch
+
+    return ((res.body_q[-1, target_of(model), :2] - torch.as_tensor(GOAL, dtype=torch.float64)) ** 2).sum()
+
+
+def target_distance(model, res) -> float:
+    return float(np.linalg.norm(res.body_q[-1, target_of(model), :2].detach().numpy() - np.asarray(GOAL)))
+
+
+def moved(res) -> np.ndarray:
+    """Which balls ever move (bool (B,)): a ball at rest that nothing hits keeps velocity 0."""
+    return np.any(res.body_qd[:, :, 3:].detach().numpy() != 0.0, axis=(0, 2))
+
+
+def lifted_pair(model, res):
+    """The pair the proposed method lifts while the target is still, and its window:
+    ``(ball, first_step)``. The rule: among the balls that move, the one whose straight path
+    after its last velocity change (its last contact, or the start) passes closest to the
+    target; the window runs from that step to the end, where the path is exactly straight. None
+    when no moving ball ends in motion."""
+    q = res.body_q.detach().numpy()[:, :, :2]
+    qd = res.body_qd.detach().numpy()[:, :, 3:5]
+    target = target_of(model)
+    best = None
+    for ball in np.flatnonzero(moved(res)):
+        changes = np.flatnonzero(np.any(qd[1:, ball] != qd[:-1, ball], axis=1))
+        first = int(changes[-1]) + 1 if len(changes) else 0
+        if first >= STEPS:
+            continue
+        d0 = q[first, ball] - q[first, target]
+        travel = q[-1, ball] - q[first, ball]
+        denom = float(travel @ travel)
+        if not denom > 1e-24:
+            continue
+        s = float(np.clip(-(d0 @ travel) / denom, 0.0, 1.0))
+        gap = float(np.linalg.norm(d0 + s * travel))
+        if best is None or gap < best[0]:
+            best = (gap, int(ball), first)
+    return None if best is None else best[1:]
+
+
+MISS_TIME = 0.5
+"""Where in its window (a fraction) the miss loss puts the lifted pair's contact."""
+
+
+def miss_loss(roots, duration: float):
+    """The lifted pair's loss from its roots (2, 2) [s], in window fractions: a miss (complex
+    pair) is pulled to a contact in the window's middle, eq. ``complexconjugateloss`` with the
+    target ``(MISS_TIME, 0)``; a real contact outside the window (``t-`` after its end, or
+    ``t+`` before its start: the paths cross outside the run) pulls that root to ``MISS_TIME``
+    (eq. ``loss``). The middle of the window, not its edge: a contact at the edge is one the
+    optimiser can reach by parking the ball beside the target."""
+    from sim.events import complex_conjugate_loss, root_loss
+
+    r = roots / duration
+    target = (MISS_TIME, 0.0)
+    if float(r[0, 1].detach()) != 0.0:
+        plus, minus = (0, 1) if float(r[0, 1].detach()) > 0.0 else (1, 0)
+        return complex_conjugate_loss(r[plus], r[minus], target)
+    if float(r[0, 0].detach()) > 1.0:
+        return root_loss(r[0], target)
+    if float(r[1, 0].detach()) < 0.0:
+        return root_loss(r[1], target)
+    return (r * 0.0).sum()  # a contact inside the window: the target moves, so this is not reached
+
+
+def evaluate(model, shot, method: str, grad: bool):
+    """One rollout of ``shot`` with the method's loss: (shot tensor, result, loss tensor, hit,
+    lifted pair or None). ``hit``: the target moves. While it does not (and the method is not
+    the baseline), the loss is the lifted pair's (:func:`lifted_pair`, :func:`miss_loss`): the
+    quadratic's roots from the rollout's own trajectory (:func:`sim.events.sphere_event_roots`,
+    what ``rollout(events=[SphereEvent(...)])`` returns)."""
+    from sim.events import SphereEvent, sphere_event_roots
+
+    z, res = simulate(model, shot, grad=grad)
+    target = target_of(model)
+    hit = bool(moved(res)[target])
+    pair = None if hit or method == "baseline" else lifted_pair(model, res)
+    if pair is None:
+        return z, res, distance_loss(model, res), hit, None
+    roots = sphere_event_roots(model, [SphereEvent(pair[0], target, (pair[1], STEPS))], res.body_q, DT)
+    duration = (STEPS - pair[1]) * DT
+    return z, res, miss_loss(roots[0], duration) + aim_loss(model, res, pair, roots[0] / duration), hit, pair
+
+
+def aim_loss(model, res, pair, fractions):
+    """How far the lifted contact's normal is from sending the target to the goal: at the real
+    part of ``t-`` (a window fraction, clamped to the window) the unit vector from the moving
+    ball to the target, against the unit vector from the target to the goal (squared distance;
+    0 for a contact that pushes the target straight at the goal)."""
+    import torch
+
+    ball, first = pair
+    target = target_of(model)
+    q = res.body_q[:, :, :2]
+    s = fractions[0, 0].clamp(0.0, 1.0)
+    start = q[first, ball] - q[first, target]
+    d = start + s * (q[-1, ball] - q[-1, target] - start)
+    aim = torch.as_tensor(GOAL, dtype=torch.float64) - q[first, target].detach()
+    return ((-d / d.norm() - aim / aim.norm()) ** 2).sum()
+
+
+def _make_optimizer(z, name: str, lr: float):
+    import torch
+
+    return torch.optim.Adam([z], lr=lr) if name == "adam" else torch.optim.SGD([z], lr=lr)
+
+
+def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
+             lr: float = LEARNING_RATE, callback=None) -> dict[str, Any]:
+    """At most ``iters`` rollouts of ``method`` from ``start`` (x, y, vx, vy); see the module
+    docstring. Returns the run's figures and its history (one entry per rollout)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
+    if method == "cma":
+        return _optimise_cma(model, start, iters)
+    import torch
+
+    z = torch.tensor(np.asarray(start, dtype=np.float64), requires_grad=True)
+    history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
+    phase, opt = None, None
+    accepted = None  # hit phase: (shot, gradient) of the last iterate that moved the target
+    rate = lr
+    reached = stalled = None
+    t_start = time.perf_counter()
+    for it in range(iters):
+        t0 = time.perf_counter()
+        _, res, loss, hit, _pair = evaluate(model, z, method, grad=True)
+        distance = target_distance(model, res)
+        history["loss"].append(float(loss.detach()))
+        history["distance"].append(distance)
+        history["hit"].append(hit)
+        history["shot"].append(z.detach().numpy().copy())
+        good = hit and distance < TARGET_TOLERANCE
+        if good:
+            reached = it
+        wanted = "hit" if (hit or method == "baseline") else "miss"
+        take = not (method == "proposed" and accepted is not None and not hit)
+        history["accepted"].append(take)
+        if good or it == iters - 1:
+            history["seconds"].append(time.perf_counter() - t0)
+            break
+        if take:
+            z.grad = None
+            loss.backward()
+            if not bool(torch.isfinite(z.grad).all()):
+                raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
+            if (wanted == "hit" or _pair is None) and not bool(z.grad.abs().sum() > 0.0):
+                # a zero gradient (a shot that moves nothing it should): every later iterate
+                # of gradient descent or Adam would be this one
+                stalled = it
+                history["seconds"].append(time.perf_counter() - t0)
+                break
+            if wanted != phase:
+                # a new phase starts with a fresh optimiser: the miss loss with Adam, the hit
+                # loss with the chosen one (its moments mean nothing across losses)
+                phase = wanted
+                rate = MISS_LEARNING_RATE if phase == "miss" else lr
+                opt = _make_optimizer(z, "adam" if phase == "miss" else optimizer, rate)
+            if phase == "hit" and method == "proposed":
+                if accepted is not None:
+                    rate = min(rate * 1.5, lr)  # an accepted step after a rejection grows back
+                accepted = (z.detach().clone(), z.grad.detach().clone())
+        else:
+            rate *= 0.5  # the step lost the hit: back to the last hit, half the step
+            with torch.no_grad():
+                z.copy_(accepted[0])
+            z.grad = accepted[1].clone()
+        for group in opt.param_groups:
+            group["lr"] = rate
+        opt.step()
+        with torch.no_grad():  # an iterate inside a rack ball is projected out of it
+            z.copy_(torch.tensor(outside_the_rack(z.detach().numpy()), dtype=torch.float64))
+        history["seconds"].append(time.perf_counter() - t0)
+        if callback is not None:
+            callback(it, history)
+    last = reached if reached is not None else _last_reported(history)
+    result = _result(history, last, reached, time.perf_counter() - t_start)
+    result["zero_gradient_at"] = stalled
+    return result
+
+
+def _last_reported(history) -> int:
+    """The last iterate, or the last accepted one when the run ended on a rejected step."""
+    flags = history["accepted"]
+    return len(flags) - 1 if flags[-1] or not any(flags) else max(i for i, a in enumerate(flags) if a)
+
+
+def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:
+    seconds = history["seconds"]
+    return {
+        "reached_target": reached is not None,
+        "iterations_to_target": reached,
+        "final_loss": history["loss"][last],
+        "target_distance": history["distance"][last],
+        "target_moved": bool(history["hit"][last]),
+        "final_shot": [float(c) for c in history["shot"][last]],
+        "rollouts": len(history["loss"]),
+        "wall_time": wall_time,
+        "seconds_per_iteration": float(np.mean(seconds[1:] if len(seconds) > 1 else seconds)),
+        "history": history,
+    }
+
+
+def task_loss(model, shot) -> tuple[float, Any, bool]:
+    """The proposed method's loss as a plain value (CMA-ES): the squared distance when the
+    target moves, ``MISS_OFFSET`` plus the lifted pair's loss otherwise. (value, rollout, hit)."""
+    _, res, loss, hit, _pair = evaluate(model, shot, "cma", grad=False)
+    value = float(loss.detach()) if hit else MISS_OFFSET + float(loss.detach())
+    return value, res, hit
+
+
+def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
+    history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
+    best = [np.inf, 0]
+    t_start = time.perf_counter()
+
+    def evaluate_shot(x):
+        t0 = time.perf_counter()
+        x = np.asarray(outside_the_rack(x))  # a candidate inside a rack ball is played from outside it
+        value, res, hit = task_loss(model, x)
+        distance = target_distance(model, res)
+        history["loss"].append(value)
+        history["distance"].append(distance)
+        history["hit"].append(hit)
+        history["shot"].append(np.asarray(x, dtype=np.float64))
+        history["accepted"].append(bool(value < best[0]))
+        history["seconds"].append(time.perf_counter() - t0)
+        if value < best[0]:
+            best[:] = [value, len(history["loss"]) - 1]
+        return value, bool(hit and distance < TARGET_TOLERANCE)
+
+    run_cma(start, CMA_SIGMA, iters, evaluate_shot)
+    n = len(history["loss"])
+    reached = n - 1 if history["hit"][-1] and history["distance"][-1] < TARGET_TOLERANCE else None
+    return _result(history, reached if reached is not None else best[1], reached, time.perf_counter() - t_start)
+
+
+def gradient_check(model, shot, step: float = 1e-6) -> dict[str, Any]:
+    """The distance loss' gradient w.r.t. the shot (rollout backward) against central finite
+    differences of the same forward (``step`` in m and m/s)."""
+    import torch
+
+    z, res = simulate(model, shot, grad=True)
+    distance_loss(model, res).backward()
+    analytic = z.grad.numpy().copy()
+    numeric = np.zeros(4)
+    for k in range(4):
+        values = []
+        for sign in (1.0, -1.0):
+            s = np.asarray(shot, dtype=np.float64).copy()
+            s[k] += sign * step
+            with torch.no_grad():
+                values.append(float(distance_loss(model, simulate(model, s)[1])))
+        numeric[k] = (values[0] - values[1]) / (2.0 * step)
+    return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
+            "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--iters", type=int_at_least(1), default=200,
+                        help="rollouts per method at most (default %(default)s)")
+    parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="default",
+                        help="the cue's shot: DiffTaichi's, one that passes above the rack, one away from it, or "
+                             "'seeded': a miss drawn from --seed (default %(default)s)")
+    parser.add_argument("--cue-pos", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                        help="the cue's initial position [m] (with --cue-vel: any shot; overrides --start)")
+    parser.add_argument("--cue-vel", type=float, nargs=2, metavar=("VX", "VY"), default=None,
+                        help="the cue's initial velocity [m/s] (with --cue-pos)")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help=f"comma-separated subset of {','.join(METHODS)} (default all)")
+    parser.add_argument("--plot", type=str, default=None, metavar="PATH.png",
+                        help="also write the loss curves of the methods as a PNG (needs matplotlib)")
+    parser.add_argument("--optimizer", choices=OPTIMIZERS, default="gd",
+                        help="the optimiser of the squared distance: DiffTaichi's plain gradient descent or Adam, "
+                             "learning rate 0.01 (default %(default)s)")
+
+
+def check_arguments(args: argparse.Namespace) -> str | None:
+    """A usage error for inconsistent options (None when they are fine)."""
+    if (args.cue_pos is None) != (args.cue_vel is None):
+        return "--cue-pos and --cue-vel go together"
+    if args.cue_pos is not None:
+        if not np.all(np.isfinite(list(args.cue_pos) + list(args.cue_vel))):
+            return "--cue-pos and --cue-vel must be finite"
+        if not np.any(np.asarray(args.cue_vel) != 0.0):
+            return "--cue-vel must not be zero (a cue at rest moves nothing and has no gradient)"
+        gaps = np.linalg.norm(rack_positions() - np.asarray(args.cue_pos)[None], axis=1) - 2 * RADIUS
+        if gaps.min() < 0.0:
+            return f"--cue-pos puts the cue inside rack ball {int(np.argmin(gaps)) + 1} (overlap {-gaps.min():.3g} m)"
+    try:
+        parse_methods(args.methods, METHODS)
+    except ValueError as exc:
+        return str(exc)
+    if args.plot is not None:
+        import os
+
+        if not args.plot.endswith(".png"):
+            return f"--plot must name a .png file, got {args.plot!r}"
+        if os.path.abspath(args.plot) == os.path.abspath(str(args.out)):
+            return "--plot and --out must be different files"
+    return None
+
+
+def plot_losses(curves: dict[str, list], path: str, title: str) -> None:
+    """The loss per rollout of each method (log scale), written atomically to ``path``."""
+    import matplotlib
+
+    from sim.logging import save_figure
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for method, curve in curves.items():
+        ax.semilogy(np.arange(len(curve)), np.maximum(np.asarray(curve, dtype=np.float64), 1e-12),
+                    label=f"{method} ({len(curve)} rollouts)")
+    ax.set_xlabel("iteration (rollout)")
+    ax.set_ylabel("loss [m^2] (a miss: the lifted pair's loss)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    try:
+        save_figure(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def start_of(args: argparse.Namespace, model) -> tuple[tuple[float, ...], str]:
+    """The shot (x, y, vx, vy) of the options and its name."""
+    if args.cue_pos is not None:
+        return tuple(float(c) for c in list(args.cue_pos) + list(args.cue_vel)), "given"
+    if args.start == "seeded":
+        return seeded_start(model, args.seed), f"seed {args.seed}"
+    return STARTS[args.start], args.start
+
+
+def log_shot(log: Any, model, res, method: str) -> None:
+    """The best shot's balls as spheres over time (timeline ``step``), the goal and the target."""
+    import rerun as rr
+
+    rec = log.stream
+    n = model.body_count
+    colors = np.tile(np.array([[200, 30, 40]], dtype=np.uint8), (n, 1))
+    colors[0] = (230, 230, 230)
+    colors[-1] = (50, 70, 210)
+    rec.log("/world/goal", rr.Points3D([[GOAL[0], GOAL[1], 0.0]], radii=RADIUS / 2, colors=[[0, 0, 0]]), static=True)
+    q = res.body_q.detach().numpy()
+    for step in range(0, q.shape[0], 8):
+        rec.set_time("step", sequence=step)
+        rec.log(f"/shots/{method}/balls", rr.Ellipsoids3D(centers=q[step, :, :3], half_sizes=np.full((n, 3), RADIUS),
+                                                        colors=colors, fill_mode="solid"))
+        rec.log(f"/shots/{method}/target", rr.Points3D([q[step, -1, :3]], radii=RADIUS * 1.2, colors=[[50, 70, 210]]))
+
+
+def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
+    """Optimises the shot with each method; logs each method's loss and target distance per
+    rollout (``/metrics/<loss|distance>/<method>``, timeline ``iteration``) and its best shot."""
+    problem = check_arguments(args)
+    if problem is not None:
+        raise ValueError(problem)
+    methods = parse_methods(args.methods, METHODS)
+    model = build()
+    shot, name = start_of(args, model)
+    out, curves = {}, {}
+    for method in methods:
+        result = optimise(model, shot, args.iters, method, args.optimizer)
+        h = result.pop("history")
+        curves[method] = h["loss"]
+        frames = {"iteration": np.arange(len(h["loss"]))}
+        log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]), sequence=frames)
+        log.log_scalars(f"/metrics/distance/{method}", np.asarray(h["distance"]), sequence=frames)
+        _, res = simulate(model, result["final_shot"])
+        log_shot(log, model, res, method)
+        out[method] = result
+    if args.plot is not None:
+        plot_losses(curves, args.plot, f"billiards from '{name}' ({args.optimizer})")
+    return {"scene": NAME, "start": name, "shot": list(shot), "goal": list(GOAL), "iters": args.iters,
+            "optimizer": args.optimizer, "methods": out}

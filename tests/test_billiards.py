@@ -1,0 +1,98 @@
+"""Scene ``billiards`` (DiffTaichi's billiards with sphere bodies and lifted sphere events).
+
+Ground truth: the rack's layout and the untouched loss in closed form, straight-line geometry of
+the cue's path, and the rollout's own trajectory (a ball at rest that nothing hits keeps a zero
+velocity exactly)."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from scenes import billiards as B
+
+
+@pytest.fixture(scope="module")
+def model():
+    return B.build()
+
+
+def test_rack_is_difftaichis(model):
+    rack = B.rack_positions()
+    assert rack.shape == (10, 2)
+    assert np.allclose(rack[-1], (0.68, 0.617), atol=1e-15)
+    # neighbours in a row touch (to rounding), rows do not
+    assert abs(np.linalg.norm(rack[1] - rack[2]) - 2 * B.RADIUS) < 1e-15
+    assert np.linalg.norm(rack[0] - rack[1]) > 2 * B.RADIUS * 1.05
+    assert model.body_count == 11 and model.sphere_count == 11
+
+
+@pytest.mark.parametrize("start", ["miss-above", "miss-away"])
+def test_named_misses_touch_nothing(model, start):
+    assert B.cue_path_gap(model, B.STARTS[start]) > 0.0
+    _, res = B.simulate(model, B.STARTS[start])
+    assert not B.moved(res)[1:].any()
+    untouched = (0.68 - 0.9) ** 2 + (0.617 - 0.75) ** 2
+    assert abs(float(B.distance_loss(model, res)) - untouched) < 1e-15
+
+
+def test_seeded_starts_miss(model):
+    for seed in range(3):
+        shot = B.seeded_start(model, seed)
+        _, res = B.simulate(model, shot)
+        assert not B.moved(res)[1:].any()
+
+
+def test_lifted_pair_is_the_cue_and_the_target_for_a_miss(model):
+    _, res = B.simulate(model, B.STARTS["miss-above"])
+    assert B.lifted_pair(model, res) == (0, 0)
+
+
+def test_the_default_start_hits_and_its_gradient_equals_central_differences(model):
+    _, res = B.simulate(model, B.STARTS["default"])
+    assert B.moved(res)[B.target_of(model)]
+    check = B.gradient_check(model, B.STARTS["default"])
+    assert check["relative_error"] < 1e-6, check
+
+
+def test_cli_from_a_miss(tmp_path):
+    """The baseline's gradient is exactly zero from a miss (it stops at once with DiffTaichi's
+    untouched loss); the proposed method's lifted loss falls."""
+    out = tmp_path / "b.rrd"
+    proc = subprocess.run([sys.executable, "-m", "scenes", "billiards", "--out", str(out), "--start", "miss-above",
+                           "--iters", "4", "--methods", "baseline,proposed", "--plot", str(tmp_path / "l.png")],
+                          capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    base, proposed = summary["methods"]["baseline"], summary["methods"]["proposed"]
+    assert base["zero_gradient_at"] == 0 and not base["reached_target"] and base["rollouts"] == 1
+    assert abs(base["final_loss"] - 0.066089) < 1e-12
+    assert abs(base["target_distance"] - np.hypot(0.22, 0.133)) < 1e-12
+    assert proposed["rollouts"] == 4
+    assert set(proposed) >= {"reached_target", "final_loss", "iterations_to_target", "target_distance"}
+    assert out.exists() and out.stat().st_size > 0
+    assert (tmp_path / "l.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--cue-pos", "0.1", "0.5"], "--cue-pos and --cue-vel go together"),
+    (["--methods", "foo"], "--methods must be"),
+    (["--cue-pos", "0.1", "nan", "--cue-vel", "0.3", "0"], "finite"),
+    (["--plot", "x.txt"], "--plot must name a .png file"),
+])
+def test_cli_usage_errors(tmp_path, argv, message):
+    proc = subprocess.run([sys.executable, "-m", "scenes", "billiards", "--out", str(tmp_path / "x.rrd")] + argv,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and message in proc.stderr
+    assert not (tmp_path / "x.rrd").exists()
+
+
+def test_shots_inside_the_rack_are_projected_out():
+    rack = B.rack_positions()
+    shot = B.outside_the_rack((rack[3, 0] + 0.01, rack[3, 1], 0.3, 0.0))
+    gaps = np.linalg.norm(rack - np.asarray(shot[:2])[None], axis=1) - 2 * B.RADIUS
+    assert gaps.min() >= 0.0 and gaps.min() < 1e-9 and shot[2:] == (0.3, 0.0)
+    assert B.outside_the_rack(B.STARTS["default"]) == B.STARTS["default"]
