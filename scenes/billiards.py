@@ -128,6 +128,14 @@ def outside_the_rack(shot, rows: int = ROWS) -> tuple[float, float, float, float
         norm = float(np.linalg.norm(offsets[k]))
         direction = offsets[k] / norm if norm > 0.0 else np.array([-1.0, 0.0])
         x[:2] = rack[k] + direction * 2 * RADIUS * (1.0 + 1e-9)
+    gaps = np.linalg.norm(x[None, :2] - rack, axis=1) - 2 * RADIUS
+    if gaps.min() < 0.0:
+        # wedged between touching balls: onto the circle around the whole rack instead
+        centre = rack.mean(axis=0)
+        offset = x[:2] - centre
+        norm = float(np.linalg.norm(offset))
+        direction = offset / norm if norm > 0.0 else np.array([-1.0, 0.0])
+        x[:2] = centre + direction * (np.linalg.norm(rack - centre, axis=1).max() + 2 * RADIUS) * (1.0 + 1e-9)
     return tuple(float(c) for c in x)
 
 
@@ -311,9 +319,10 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             loss.backward()
             if not bool(torch.isfinite(z.grad).all()):
                 raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
-            if (wanted == "hit" or _pair is None) and not bool(z.grad.abs().sum() > 0.0):
-                # a zero gradient (a shot that moves nothing it should): every later iterate
-                # of gradient descent or Adam would be this one
+            fresh = wanted != phase or (wanted == "hit" and optimizer == "gd")  # no momentum to carry on
+            if fresh and (wanted == "hit" or _pair is None) and not bool(z.grad.abs().sum() > 0.0):
+                # a zero gradient (a shot that moves nothing it should) without momentum:
+                # every later iterate would be this one
                 stalled = it
                 history["seconds"].append(time.perf_counter() - t0)
                 break

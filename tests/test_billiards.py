@@ -96,3 +96,6 @@ def test_shots_inside_the_rack_are_projected_out():
     gaps = np.linalg.norm(rack - np.asarray(shot[:2])[None], axis=1) - 2 * B.RADIUS
     assert gaps.min() >= 0.0 and gaps.min() < 1e-9 and shot[2:] == (0.3, 0.0)
     assert B.outside_the_rack(B.STARTS["default"]) == B.STARTS["default"]
+    # wedged between two touching balls of a row: pushing out of one pushes into the other
+    wedged = B.outside_the_rack((*(0.5 * (rack[1] + rack[2]) + (0.001, 0.0)), 0.3, 0.0))
+    assert (np.linalg.norm(rack - np.asarray(wedged[:2])[None], axis=1) - 2 * B.RADIUS).min() >= 0.0
