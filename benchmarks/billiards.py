@@ -109,20 +109,14 @@ def gradients(model) -> dict:
 
     from benchmarks.difftaichi_anchor import DiffTaichiBilliards
     from scenes import billiards as B
+    from scenes.optim import central_difference_check
 
     shot = np.asarray(B.STARTS["default"])
     ours = B.gradient_check(model, shot)
     anchor = DiffTaichiBilliards()
     _, grad = anchor.loss_and_grad(shot[:2], shot[2:])
-    fd = {}
-    for step in (1e-2, 1e-3):
-        g = np.zeros(4)
-        for k in range(4):
-            e = np.zeros(4)
-            e[k] = step
-            g[k] = (anchor.loss_and_grad((shot + e)[:2], (shot + e)[2:])[0]
-                    - anchor.loss_and_grad((shot - e)[:2], (shot - e)[2:])[0]) / (2 * step)
-        fd[str(step)] = g.tolist()
+    fd = {str(step): central_difference_check(grad, lambda s: anchor.loss_and_grad(s[:2], s[2:])[0], shot,
+                                              step)["numeric"] for step in (1e-2, 1e-3)}
     # grazing sweep: a ball struck at closest approaches 0.9 .. 1.1 x 2 r; the gradient of its
     # final position w.r.t. the cue's velocity, against the free flight's (1 s: the time)
     from sim.builder import ModelBuilder

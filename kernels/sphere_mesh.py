@@ -11,37 +11,15 @@ triangle's contact. Features are numbered 0 (face), 1-3 (edges ab, bc, ca) and 4
 b, c).
 
 :func:`feature_entry_time` decides (off the tape); :func:`feature_contact` replays the chosen
-feature's time of impact and contact normal on the tape (the quadratics through
-:func:`kernels.roots.quadratic_roots`, whose adjoint is the mollified derivative).
+feature's time of impact and contact normal on the tape (the edges and corners are
+:mod:`kernels.point_ball` pairs: quadratics with the mollified derivative).
 """
 
 import warp as wp
 
-from kernels.roots import quadratic_roots, quadratic_solve
+from kernels.point_ball import entry_time, impact_time
 
 f64 = wp.float64
-
-
-@wp.func
-def distance_quadratic(w: wp.vec3d, v: wp.vec3d, reach: wp.float64) -> wp.vec3d:
-    """Coefficients of ``|w + t v|^2 - reach^2`` in ``t`` (the constant term factored)."""
-    dist = wp.length(w)
-    return wp.vec3d(wp.dot(v, v), f64(2.0) * wp.dot(w, v), (dist - reach) * (dist + reach))
-
-
-@wp.func
-def entry_time(w: wp.vec3d, v: wp.vec3d, reach: wp.float64, h: wp.float64, t_max: wp.float64) -> wp.float64:
-    """When ``w + t v`` first comes within ``reach`` of the origin, moving closer, within
-    ``[0, h]`` (0 when it starts within); -1 when it does not."""
-    if wp.dot(w, v) >= f64(0.0):
-        return f64(-1.0)
-    if wp.length(w) <= reach:
-        return f64(0.0)
-    p = distance_quadratic(w, v, reach)
-    roots, _sa = quadratic_solve(p[0], p[1], p[2], t_max)
-    if roots[1] == f64(0.0) and roots[0] <= h:
-        return roots[0]
-    return f64(-1.0)
 
 
 @wp.func
@@ -97,14 +75,14 @@ def feature_entry_time(x0: wp.vec3d, v: wp.vec3d, reach: wp.float64, a: wp.vec3d
         length = wp.length(q1 - q0)
         u = (q1 - q0) / length
         w = x0 - q0
-        t = entry_time(w - wp.dot(w, u) * u, v - wp.dot(v, u) * u, reach, h, t_max)
+        t = entry_time(w - wp.dot(w, u) * u, v - wp.dot(v, u) * u, reach, h, t_max, f64(0.0))
         if t < f64(0.0):
             return t
         s = wp.dot(w + t * v, u)
         if s < f64(0.0) or s > length:
             return f64(-1.0)
         return t
-    return entry_time(x0 - corner(a, b, c, feature - 4), v, reach, h, t_max)
+    return entry_time(x0 - corner(a, b, c, feature - 4), v, reach, h, t_max, f64(0.0))
 
 
 @wp.func
@@ -125,9 +103,6 @@ def feature_contact(x0: wp.vec3d, v: wp.vec3d, reach: wp.float64, a: wp.vec3d, b
         w0 = x0 - q0
         w = w0 - wp.dot(w0, u) * u
         dv = v - wp.dot(v, u) * u
-    t = zero
-    if wp.length(w) > reach:
-        roots = quadratic_roots(distance_quadratic(w, dv, reach), t_max, max_derivative)
-        t = wp.clamp(roots[0], zero, h)
+    t = impact_time(w, dv, reach, h, t_max, max_derivative)
     n = wp.normalize(w + t * dv)
     return wp.vec4d(t, n[0], n[1], n[2])

@@ -13,8 +13,9 @@ time of impact; a miss is a complex pair.
 Decide, then replay (design.md): :func:`decide_sphere_pairs` and :func:`decide_sphere_obstacles`
 choose which pairs and obstacles act in the substep (off the tape: the choice is piecewise
 constant); :func:`respond_sphere_pairs` and :func:`respond_sphere_obstacles` replay the smooth map
-given that choice, on the tape. ``t-`` comes from :func:`kernels.roots.quadratic_roots`, whose
-adjoint is the mollified implicit derivative bounded by ``max_derivative``.
+given that choice, on the tape. ``t-`` comes from :func:`kernels.point_ball.impact_time`
+(:func:`kernels.roots.quadratic_roots`, whose adjoint is the mollified implicit derivative
+bounded by ``max_derivative``).
 
 The pairs act at once (a Jacobi pass, as DiffTaichi's billiards does): each applies its
 impulse, computed from the predicted velocities, at its own time of impact, and the position
@@ -38,7 +39,7 @@ import warp as wp
 
 from kernels.friction import coulomb_friction
 from kernels.integrate import earliest_plane, exact_rotation, plane_rebound, time_of_impact_position
-from kernels.roots import quadratic_roots, quadratic_solve
+from kernels.point_ball import entry_time, impact_time
 from kernels.sphere_mesh import feature_contact, feature_entry_time
 
 f64 = wp.float64
@@ -59,13 +60,6 @@ OVERLAP_RTOL = wp.constant(wp.float64(1.0e-12))
 """A separating pair overlapping at the end of a pass by more than this fraction of the sum of
 its radii is pushed apart (rounding leaves touching balls ~1e-16 relative inside); a pair
 approaches when its normal relative speed exceeds this fraction of its balls' speeds."""
-
-
-@wp.func
-def pair_quadratic(d0: wp.vec3d, dv: wp.vec3d, reach: wp.float64) -> wp.vec3d:
-    """Coefficients ``(a, b, c)`` of ``|d0 + t dv|^2 - reach^2`` [m^2] in ``t`` [s]."""
-    dist = wp.length(d0)
-    return wp.vec3d(wp.dot(dv, dv), f64(2.0) * wp.dot(d0, dv), (dist - reach) * (dist + reach))
 
 
 @wp.func
@@ -95,7 +89,7 @@ def decide_sphere_pairs(
     start of the pass's straight path; ``body_qd``: the velocities on it.
 
     A pair that has not had its impulse in this substep (``responded[k] == 0``): 1 when it
-    approaches and touches within ``h`` [s] (a real ``t- <= h``), or approaches while already
+    approaches and touches within ``h`` [s] (a real ``t- <= h``, :func:`kernels.point_ball.entry_time`), or approaches while already
     touching. A pair that has (``responded[k] == 1``) is judged by its end state only (the
     pass's straight path is made up: it would cross the contact the pair already had): 3 when
     it still touches and approaches at the end (an impulse there). Either: 2 when it separates
@@ -121,14 +115,8 @@ def decide_sphere_pairs(
             flag = 3
         elif wp.length(d1) < reach * (f64(1.0) - OVERLAP_RTOL):
             flag = 2
-    elif wp.dot(d0, dv) < -slack * wp.length(d0):
-        if wp.length(d0) <= reach:
-            flag = 1
-        else:
-            p = pair_quadratic(d0, dv, reach)
-            roots, _sa = quadratic_solve(p[0], p[1], p[2], t_max)
-            if roots[1] == f64(0.0) and roots[0] <= h:
-                flag = 1
+    elif entry_time(d0, dv, reach, h, t_max, slack) >= f64(0.0):
+        flag = 1
     elif wp.length(d1) < reach * (f64(1.0) - OVERLAP_RTOL):
         flag = 2  # separating, but overlapping at the end (several contacts' shifts at once)
     active[k] = wp.int32(flag)
@@ -194,12 +182,9 @@ def respond_sphere_pairs(
         wp.atomic_add(changes, bi, position_shift(w_i * shift))
         wp.atomic_add(changes, bj, position_shift(-w_j * shift))
         return
-    toi = f64(0.0)
-    if flag == 3:
-        toi = h  # a pair that had its impulse and still approaches at the end: one more there
-    elif wp.length(d0) > reach:  # else already touching: the impulse acts at the start
-        roots = quadratic_roots(pair_quadratic(d0, dv, reach), t_max, max_derivative)
-        toi = wp.clamp(roots[0], f64(0.0), h)
+    toi = h  # flag 3: a pair that had its impulse and still approaches at the end: one more there
+    if flag == 1:
+        toi = impact_time(d0, dv, reach, h, t_max, max_derivative)
     n = wp.normalize(d0 + toi * dv)  # from j to i at the impact
     jn = -(f64(1.0) + restitution) * wp.dot(n, dv) / (w_i + w_j)
     arm_i = -r_i * n  # centre to contact point
@@ -363,20 +348,3 @@ def respond_sphere_obstacles(
     q = wp.normalize(exact_rotation(dw, h - toi) * wp.transform_get_rotation(X))
     body_q_out[b] = wp.transformd(time_of_impact_position(x0, v, v_plus, toi, h), q)
     body_qd_out[b] = wp.spatial_vectord(w_plus[0], w_plus[1], w_plus[2], v_plus[0], v_plus[1], v_plus[2])
-
-
-@wp.kernel(enable_backward=False)
-def sphere_overlaps(
-    pair_a: wp.array(dtype=wp.int32),
-    pair_b: wp.array(dtype=wp.int32),
-    sphere_body: wp.array(dtype=wp.int32),
-    sphere_radius: wp.array(dtype=wp.float64),
-    body_q: wp.array(dtype=wp.transformd),
-    depth: wp.array(dtype=wp.float64),
-):
-    """``depth[k]``: how far pair ``k``'s spheres overlap [m] (0 when apart)."""
-    k = wp.tid()
-    i = pair_a[k]
-    j = pair_b[k]
-    d = wp.transform_get_translation(body_q[sphere_body[i]]) - wp.transform_get_translation(body_q[sphere_body[j]])
-    depth[k] = wp.max(sphere_radius[i] + sphere_radius[j] - wp.length(d), f64(0.0))

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import GuardedAdam, parse_methods, reported_iterate, run_cma
+from scenes.optim import GuardedAdam, central_difference_check, parse_methods, reported_iterate, run_cma
 from scenes.registry import int_at_least
 from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
@@ -313,18 +313,12 @@ def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | Non
 
     x, res = simulate(model, v, grad=True, settings=settings)
     distance_loss(res).backward()
-    analytic = x.grad.numpy()[0].copy()
-    numeric = np.zeros(3)
-    for k in range(3):
-        vals = []
-        for sign in (1.0, -1.0):
-            vv = np.asarray(v, dtype=np.float64).copy()
-            vv[k] += sign * step
-            with torch.no_grad():
-                vals.append(float(distance_loss(simulate(model, vv, settings=settings)[1])))
-        numeric[k] = (vals[0] - vals[1]) / (2.0 * step)
-    return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
-            "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
+
+    def value(vv):
+        with torch.no_grad():
+            return distance_loss(simulate(model, vv, settings=settings)[1])
+
+    return central_difference_check(x.grad.numpy()[0], value, v, step)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import parse_methods, run_cma
+from scenes.optim import central_difference_check, parse_methods, run_cma
 from scenes.registry import int_at_least
 
 NAME = "billiards"
@@ -418,18 +418,12 @@ def gradient_check(model, shot, step: float = 1e-6) -> dict[str, Any]:
 
     z, res = simulate(model, shot, grad=True)
     distance_loss(model, res).backward()
-    analytic = z.grad.numpy().copy()
-    numeric = np.zeros(4)
-    for k in range(4):
-        values = []
-        for sign in (1.0, -1.0):
-            s = np.asarray(shot, dtype=np.float64).copy()
-            s[k] += sign * step
-            with torch.no_grad():
-                values.append(float(distance_loss(model, simulate(model, s)[1])))
-        numeric[k] = (values[0] - values[1]) / (2.0 * step)
-    return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
-            "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
+
+    def value(s):
+        with torch.no_grad():
+            return distance_loss(model, simulate(model, s)[1])
+
+    return central_difference_check(z.grad.numpy(), value, shot, step)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,4 +1,5 @@
-"""The two-phase optimiser of the inverse scenes (``tunnel``, ``bank_shot``).
+"""The two-phase optimiser of the inverse scenes (``tunnel``, ``bank_shot``), CMA-ES, the
+``--methods`` option and the scenes' gradient check against central differences.
 
 Phase one (the miss): plain Adam on a lifted-event loss. Phase two, from the first iterate in
 the wanted contact region ("good": the designated face is hit, the shot banks): a fresh Adam
@@ -111,3 +112,21 @@ def parse_methods(text: str, methods) -> list[str]:
     if not chosen or any(m not in methods for m in chosen):
         raise ValueError(f"--methods must be a comma-separated subset of {','.join(methods)}, got {text!r}")
     return chosen
+
+
+def central_difference_check(analytic, value, x, step: float) -> dict:
+    """A gradient ``analytic`` (n,) against central differences of ``value`` (a float of an
+    (n,) numpy array) at ``x`` with ``step``: both, and their relative error."""
+    import numpy as np
+
+    analytic = np.asarray(analytic, dtype=np.float64)
+    numeric = np.zeros(len(analytic))
+    for k in range(len(analytic)):
+        values = []
+        for sign in (1.0, -1.0):
+            shifted = np.asarray(x, dtype=np.float64).copy()
+            shifted[k] += sign * step
+            values.append(float(value(shifted)))
+        numeric[k] = (values[0] - values[1]) / (2.0 * step)
+    return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
+            "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}

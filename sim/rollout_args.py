@@ -13,15 +13,18 @@ from sim.model import Model
 from sim.validation import sphere_overlap
 
 
-def check_tensor(value, count: int, width: int, name: str) -> torch.Tensor | None:
+def check_tensor(value, shape: tuple, name: str, unit: str = "") -> torch.Tensor | None:
+    """None, or a finite float64 torch tensor of ``shape`` (``unit`` names its unit in messages)."""
     if value is None:
         return None
+    text = "(" + ", ".join(str(n) for n in shape) + ("," if len(shape) == 1 else "") + ")"
+    unit = f" [{unit}]" if unit else ""
     if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch tensor of shape ({count}, {width}), got {type(value).__name__}")
+        raise ValueError(f"{name} must be a torch tensor of shape {text}{unit}, got {type(value).__name__}")
     if value.dtype != torch.float64:
         raise ValueError(f"{name} must be float64, got {value.dtype}")
-    if tuple(value.shape) != (count, width):
-        raise ValueError(f"{name} must have shape ({count}, {width}), got {tuple(value.shape)}")
+    if tuple(value.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {text}, got {tuple(value.shape)}")
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name} must be finite (it holds NaN or inf)")
     return value
@@ -30,17 +33,8 @@ def check_tensor(value, count: int, width: int, name: str) -> torch.Tensor | Non
 def check_parameter(value, count: int, name: str, unit: str) -> torch.Tensor | None:
     """A per-particle or per-spring parameter: None, or a finite, non-negative float64 torch
     tensor of shape (count,)."""
-    if value is None:
-        return None
-    if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch tensor of shape ({count},) [{unit}], got {type(value).__name__}")
-    if value.dtype != torch.float64:
-        raise ValueError(f"{name} must be float64, got {value.dtype}")
-    if tuple(value.shape) != (count,):
-        raise ValueError(f"{name} must have shape ({count},), got {tuple(value.shape)}")
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} must be finite (it holds NaN or inf)")
-    if bool((value < 0.0).any()):
+    value = check_tensor(value, (count,), name, unit)
+    if value is not None and bool((value < 0.0).any()):
         raise ValueError(f"{name} must be >= 0 [{unit}], got a negative value")
     return value
 
@@ -61,7 +55,7 @@ def check_parameters(model: Model, particle_mass, spring_stiffness):
 
 def check_poses(value, model: Model) -> torch.Tensor | None:
     """Initial body poses: None, or finite float64 (B, 7) with unit quaternions (to 1e-9)."""
-    value = check_tensor(value, model.body_count, 7, "body_q")
+    value = check_tensor(value, (model.body_count, 7), "body_q")
     if value is not None and model.body_count:
         norms = value.detach()[:, 3:].norm(dim=1)
         if bool(((norms - 1.0).abs() > 1.0e-9).any()):
@@ -95,6 +89,6 @@ def check_args(model, steps, dt, substeps, particle_qd, body_qd, events, checkpo
             or not float(max_derivative) > 0.0:
         raise ValueError(f"max_derivative must be a positive number, got {max_derivative!r}")
     events = check_events(model, events, int(steps))
-    pqd = check_tensor(particle_qd, model.particle_count, 3, "particle_qd")
-    bqd = check_tensor(body_qd, model.body_count, 6, "body_qd")
+    pqd = check_tensor(particle_qd, (model.particle_count, 3), "particle_qd")
+    bqd = check_tensor(body_qd, (model.body_count, 6), "body_qd")
     return int(steps), dt_f, int(substeps), pqd, bqd, events

@@ -17,7 +17,7 @@ import warp as wp
 from kernels.roots import DEFAULT_MAX_DERIVATIVE, DEFAULT_T_MAX
 from core.buffers import host
 from kernels.spheres import (apply_sphere_changes, decide_sphere_obstacles, decide_sphere_pairs, respond_sphere_obstacles,
-                             respond_sphere_pairs, sphere_overlaps, straight_path_start, vec12d)
+                             respond_sphere_pairs, straight_path_start, vec12d)
 from sim.model import Model, State
 
 
@@ -139,12 +139,3 @@ class SphereContacts:
                       outputs=[out_q, out_qd], device=d)
             return out_q, out_qd
         return bodies_q, bodies_qd
-
-    def overlaps(self, body_q: wp.array) -> np.ndarray:
-        """How far each pair's spheres overlap at the poses ``body_q`` [m], numpy (pair_count,)."""
-        depth = wp.zeros(self.pair_count, dtype=wp.float64, device=self.device)
-        if self.pair_count:
-            wp.launch(sphere_overlaps, dim=self.pair_count,
-                      inputs=[self.pair_a, self.pair_b, self.model.sphere_body, self.model.sphere_radius, body_q],
-                      outputs=[depth], device=self.device, record_tape=False)
-        return depth.numpy()
