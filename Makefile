@@ -23,7 +23,7 @@ demo: $(STAMP)
 	$(PY) -m scenes tunnel --out tunnel.rrd --iters 500
 	$(PY) benchmarks/inverse.py --scenes tunnel --seeds 4 --iters 500 --out tunnel_loss
 	$(PY) -m scenes bank_shot --out bank_shot.rrd --start miss --iters 300
-	$(PY) -m scenes billiards --out billiards.rrd --start miss-away --methods proposed,baseline --optimizer adam --plot billiards_loss.png
+	$(PY) -m scenes billiards --out billiards.rrd --start seeded --seed 0 --methods proposed,baseline --optimizer adam --plot billiards_loss.png
 	$(PY) -m scenes paper_cubic --out paper_cubic.rrd
 	$(PY) -m scenes paper_quadratic --out paper_quadratic.rrd
 	$(PY) -m scenes cloth_rigid --out cloth_rigid.rrd --steps 240

@@ -263,11 +263,15 @@ def _plot(done: dict, path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, start in zip(axes, ("default", "miss-away")):
+    for ax, start in zip(axes, ("default", "seed 0")):
         for key, r in done.items():
             method, s = key.split(" | ")
             if s == start:
                 curve = np.asarray(r["loss_curve"], dtype=np.float64)
+                if len(curve) == 1:  # an exactly zero gradient at the start: the run stops there
+                    ax.semilogy([0, 200], [curve[0], curve[0]], linestyle="--",
+                                label=f"{method} (gradient 0: stops, drawn flat)")
+                    continue
                 ax.semilogy(np.arange(len(curve)), curve, label=f"{method} ({len(curve)} rollouts)")
         ax.set_title(f"billiards from '{start}'")
         ax.set_xlabel("iteration (rollout)")

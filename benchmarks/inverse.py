@@ -329,21 +329,53 @@ def cloth_toss(args) -> dict:
                 curve = np.asarray(r["loss_curve"]) / r["initial_loss"]
                 ax.semilogy(np.arange(len(curve)), curve, label=f"seed {r['seed']}")
         ax.axhline(1.0 - C.TARGET_CUT, color="grey", ls=":")
-        ax.set_title(method)
-        ax.set_xlabel("rollout")
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("drape loss / start's")
-    axes[0].legend()
-    fig.suptitle("cloth_toss: initial linear and angular velocity of a cloth, draped over a sphere")
-    fig.tight_layout()
+    _label_panels(fig, axes, C.METHODS, "drape loss / start's",
+                  "cloth_toss: initial linear and angular velocity of a cloth, draped over a sphere")
     fig.savefig(out + ".png", dpi=120)
     print(f"wrote {out}.md, .json, .png")
     return {"runs": runs, "summary": summary}
 
 
+def plot_tunnel_curves(plt, rows, iters: int):
+    """The loss curves of ``rows`` (runs of :func:`run_seed`), one panel per method; a
+    method without any finite loss (the baseline from a miss) is drawn flat. Returns the figure."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4), sharey=True)
+    for ax, method in zip(axes, ("proposed", "baseline", "cma")):
+        flat = False
+        for k, row in enumerate(rows):
+            curve = np.array([np.nan if x is None else x for x in row[method]["loss_curve"]], dtype=float)
+            if not np.isfinite(curve).any():
+                # no real root at a miss: no loss and a zero gradient, so the shot never changes;
+                # drawn at the lifted loss of that same shot (the proposed method's first value)
+                start = row["proposed"]["loss_curve"][0]
+                ax.semilogy([0, iters], [start, start], color=f"C{k}", linestyle="--", label=f"seed {row['seed']}")
+                flat = True
+                continue
+            ax.semilogy(np.arange(len(curve)), curve, color=f"C{k}", label=f"seed {row['seed']}")
+        if flat:
+            ax.text(0.03, 0.04, "dashed: a miss has no real root, so no loss and a zero\ngradient: "
+                    "the shot never moves (drawn at its lifted loss)", transform=ax.transAxes, fontsize=8)
+    _label_panels(fig, axes, ("proposed", "baseline", "cma"), "loss (miss phase: lifted event; hit phase: time + velocity)",
+                  "tunnel: from a miss (complex wanted root) to the target hit")
+    return fig
+
+
+def _label_panels(fig, axes, methods, ylabel: str, title: str) -> None:
+    """Titles, axis labels, grids and the legend of a row of per-method loss panels."""
+    for ax, method in zip(axes, methods):
+        ax.set_title(method)
+        ax.set_xlabel("rollout")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel(ylabel)
+    axes[0].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=50, help="seeds 0 .. N-1 (default %(default)s)")
+    parser.add_argument("--seeds", type=int, default=50, help="tunnel: N seeds from --first-seed (default %(default)s)")
+    parser.add_argument("--first-seed", type=int, default=0, help="tunnel: the first seed (default %(default)s)")
     parser.add_argument("--iters", type=int, default=500, help="Adam iterations per method (default %(default)s)")
     parser.add_argument("--jobs", type=int, default=max(1, min(os.cpu_count() or 1, 8)),
                         help="worker processes (default: the CPU count, at most 8)")
@@ -387,7 +419,7 @@ def tunnel(args) -> None:
 
     make_problem(0)  # compiles every kernel once, before the workers share the cache
     t0 = time.perf_counter()
-    tasks = [(seed, args.iters) for seed in range(args.seeds)]
+    tasks = [(seed, args.iters) for seed in range(args.first_seed, args.first_seed + args.seeds)]
     rows = []
     header = (f"{'seed':>4s} | {'proposed':>8s} {'iters':>5s} {'1st hit':>7s} {'|dt| [s]':>9s} {'dv rel':>9s} "
               f"{'wall [s]':>8s} | {'baseline':>8s} {'stalled':>7s} | {'cma':>5s} {'rollouts':>8s} {'wall [s]':>8s}")
@@ -426,7 +458,8 @@ def tunnel(args) -> None:
         }
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.jobs} worker(s)"
     lines = [
-        f"# tunnel: {args.seeds} seeds, {args.iters} iterations per method (CMA-ES: {args.iters} rollouts)",
+        f"# tunnel: {args.seeds} seeds from {args.first_seed}, {args.iters} iterations per method "
+        f"(CMA-ES: {args.iters} rollouts)",
         "",
         f"Machine: {machine}; total wall time {total:.0f} s. Success: |t - t_target| < 1e-6 s and final",
         "velocity within 1e-3 relative. Iterations are Adam steps (CMA-ES: rollouts); rollouts count every",
@@ -453,19 +486,7 @@ def tunnel(args) -> None:
     plt = _write_outputs(args.out, lines, {"machine": machine, "seeds": args.seeds, "iters": args.iters,
                                            "summary": summary, "profile": profile, "runs": rows})
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4), sharey=True)
-    for ax, method in zip(axes, ("proposed", "baseline", "cma")):
-        for row in rows[: args.curves]:
-            curve = np.array([np.nan if x is None else x for x in row[method]["loss_curve"]], dtype=float)
-            ax.semilogy(np.arange(len(curve)), curve, label=f"seed {row['seed']}")
-        ax.set_title(f"{method}")
-        ax.set_xlabel("rollout")
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("loss (miss phase: lifted event; hit phase: time + velocity)")
-    axes[0].legend()
-    fig.suptitle("tunnel: from a miss (complex wanted root) to the target hit")
-    fig.tight_layout()
-    fig.savefig(args.out + ".png", dpi=120)
+    plot_tunnel_curves(plt, rows[: args.curves], args.iters).savefig(args.out + ".png", dpi=120)
     print(f"wrote {args.out}.md, .json, .png")
 
 

@@ -45,11 +45,12 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import GuardedAdam, central_difference_check, parse_methods, reported_iterate, run_cma
+from scenes.optim import central_difference_check, GuardedAdam, parse_methods, progress, reported_iterate, run_cma
 from scenes.registry import int_at_least
 from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
 NAME = "bank_shot"
+USES_SEED = "seed of the start drawn by --start seeded"
 DESCRIPTION = "Newton's diffsim_ball: bounce off the floor and a wall onto a target (exact CCD, lifted events, CMA-ES)"
 PRECISIONS = ("float64",)
 SUPPORTS_STEPS = False
@@ -203,7 +204,7 @@ def optimise(model, start, iters: int, method: str = "proposed", callback=None,
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "cma":
-        return _optimise_cma(model, start, iters, settings)
+        return _optimise_cma(model, start, iters, settings, callback)
     import torch
 
     unmollified = method == "baseline"
@@ -277,7 +278,7 @@ def task_loss(model, v, settings: RolloutSettings | None = None) -> tuple[float,
     return MISS_OFFSET + float(miss_loss(res)[0]), res
 
 
-def _optimise_cma(model, start, iters: int, settings: RolloutSettings | None = None) -> dict[str, Any]:
+def _optimise_cma(model, start, iters: int, settings: RolloutSettings | None = None, callback=None) -> dict[str, Any]:
     history = _history()
     t0 = time.perf_counter()
     best = [np.inf, None]
@@ -296,6 +297,8 @@ def _optimise_cma(model, start, iters: int, settings: RolloutSettings | None = N
         history["accepted"].append(bool(f < best[0]))
         if f < best[0]:
             best[:] = [f, len(history["loss"]) - 1]
+        if callback is not None:
+            callback(len(history["loss"]) - 1, history)
         return f, bool(banked(hits) and dist < TARGET_TOLERANCE)
 
     run_cma(start, CMA_SIGMA, iters + 1, evaluate)
@@ -323,7 +326,7 @@ def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | Non
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
-                        help="iterations (rollouts) per method (default %(default)s)")
+                        help="Adam steps per method: N steps take N + 1 rollouts (default %(default)s)")
     parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="newton",
                         help="initial velocity: Newton's (0, 5, -5) m/s, (3, 5, -5) m/s that misses the wall, or "
                              "'seeded': a miss drawn from --seed (default %(default)s)")
@@ -356,7 +359,8 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:
-        result = optimise(model, start, args.iters, method, settings=settings)
+        with progress(f"{NAME} {method}", args.iters + 1) as callback:
+            result = optimise(model, start, args.iters, method, callback=callback, settings=settings)
         h = result.pop("history")
         frames = {"iteration": np.arange(len(h["loss"]))}
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]), sequence=frames)

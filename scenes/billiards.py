@@ -26,8 +26,9 @@ Methods (``--methods``), at most ``--iters`` rollouts each, stopping once the ta
   (:class:`sim.events.SphereEvent`) pulls a moving ball's path onto the target
   (:func:`lifted_pair` says which ball: the one whose last straight path passes closest to it;
   :func:`miss_loss`), and the contact's normal towards the direction that sends the target to
-  the goal (:func:`aim_loss`), optimised with Adam (:data:`MISS_LEARNING_RATE`); once the target
-  moves, the loss is the
+  the goal (:func:`aim_loss`), optimised with Adam (:data:`MISS_LEARNING_RATE`) over the cue's
+  position, speed and heading (:func:`_to_polar`: a path that passes behind the ball turns
+  instead of only speeding up); once the target moves, the loss is the
   squared distance, optimised with ``--optimizer`` (``gd``: DiffTaichi's plain gradient descent,
   learning rate 0.01; ``adam``). An iterate of that phase after which the target no longer moves
   is rejected: back to the last iterate that moved it, with half the step. An iterate that puts
@@ -49,10 +50,11 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import central_difference_check, parse_methods, run_cma
+from scenes.optim import central_difference_check, parse_methods, plot_loss_curves, progress, run_cma
 from scenes.registry import int_at_least
 
 NAME = "billiards"
+USES_SEED = "seed of the cue shot drawn by --start seeded"
 DESCRIPTION = "DiffTaichi's billiards: move the last rack ball to a goal from any shot, misses included"
 PRECISIONS = ("float64",)
 SUPPORTS_STEPS = False
@@ -69,8 +71,9 @@ STARTS = {"default": (0.1, 0.5, 0.3, 0.0), "miss-above": (0.1, 0.5, 0.3, 0.1), "
 TARGET_TOLERANCE = 0.005  # [m]
 LEARNING_RATE = 0.01
 MISS_LEARNING_RATE = 0.03
-"""Adam's step in the miss phase [m, m/s]: larger than DiffTaichi's 0.01, since a miss may
-have to turn the shot around (``miss-away``); the hit phase uses :data:`LEARNING_RATE`."""
+"""Adam's step in the miss phase [m, m/s; the heading in units of :data:`HEADING_SCALE` rad]:
+larger than DiffTaichi's 0.01, since a miss may have to turn the shot around (``miss-away``);
+the hit phase uses :data:`LEARNING_RATE`."""
 MISS_OFFSET = 1.0  # [m^2] CMA-ES: a shot that leaves the target still costs this plus its event loss
 CMA_SIGMA = 0.05  # CMA-ES's initial step [m, m/s]
 METHODS = ("proposed", "baseline", "cma")
@@ -272,6 +275,37 @@ def aim_loss(model, res, pair, fractions):
     return ((-d / d.norm() - aim / aim.norm()) ** 2).sum()
 
 
+HEADING_SCALE = 3.0
+"""Miss phase: the unit [rad] of the cue's heading among the optimiser's variables, so that
+Adam turns the cue by up to ``MISS_LEARNING_RATE * HEADING_SCALE`` rad per step."""
+
+
+def _to_polar(shot) -> np.ndarray:
+    """The miss phase's variables of a shot (x, y, vx, vy): (x, y, speed, heading /
+    HEADING_SCALE). In them Adam turns the cue's path; in (vx, vy) a path that passes behind
+    the lifted ball mostly speeds up (the roots' real part ``-(d . v) / |v|^2`` moves towards
+    zero either way, and its gradient points along ``v`` for such a path)."""
+    x, y, vx, vy = (float(c) for c in shot)
+    return np.array([x, y, np.hypot(vx, vy), np.arctan2(vy, vx) / HEADING_SCALE])
+
+
+def _from_polar(polar):
+    import torch
+
+    heading = polar[3] * HEADING_SCALE
+    return torch.stack([polar[0], polar[1], polar[2] * torch.cos(heading), polar[2] * torch.sin(heading)])
+
+
+def _polar_gradient(polar, grad):
+    """The loss gradient w.r.t. the polar variables from the one w.r.t. the shot (chain rule)."""
+    import torch
+
+    heading = float(polar[3]) * HEADING_SCALE
+    c, s, speed = np.cos(heading), np.sin(heading), float(polar[2])
+    g = grad.detach()
+    return torch.stack([g[0], g[1], g[2] * c + g[3] * s, HEADING_SCALE * speed * (-g[2] * s + g[3] * c)])
+
+
 def _make_optimizer(z, name: str, lr: float):
     import torch
 
@@ -287,12 +321,12 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
     if method == "cma":
-        return _optimise_cma(model, start, iters)
+        return _optimise_cma(model, start, iters, callback)
     import torch
 
     z = torch.tensor(np.asarray(start, dtype=np.float64), requires_grad=True)
     history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
-    phase, opt = None, None
+    phase, opt, polar = None, None, None  # polar: the miss phase's variables (_to_polar)
     accepted = None  # hit phase: (shot, gradient) of the last iterate that moved the target
     rate = lr
     reached = stalled = None
@@ -331,7 +365,14 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
                 # loss with the chosen one (its moments mean nothing across losses)
                 phase = wanted
                 rate = MISS_LEARNING_RATE if phase == "miss" else lr
-                opt = _make_optimizer(z, "adam" if phase == "miss" else optimizer, rate)
+                if phase == "miss":
+                    polar = torch.tensor(_to_polar(z.detach().numpy()), dtype=torch.float64)
+                    opt = torch.optim.Adam([polar], lr=rate)
+                else:
+                    polar = None
+                    opt = _make_optimizer(z, optimizer, rate)
+            if polar is not None:
+                polar.grad = _polar_gradient(polar, z.grad)
             if phase == "hit" and method == "proposed":
                 if accepted is not None:
                     rate = min(rate * 1.5, lr)  # an accepted step after a rejection grows back
@@ -341,11 +382,16 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             with torch.no_grad():
                 z.copy_(accepted[0])
             z.grad = accepted[1].clone()
-        for group in opt.param_groups:
-            group["lr"] = rate
+        if polar is None:
+            for group in opt.param_groups:
+                group["lr"] = rate
         opt.step()
         with torch.no_grad():  # an iterate inside a rack ball is projected out of it
+            if polar is not None:
+                z.copy_(_from_polar(polar))
             z.copy_(torch.tensor(outside_the_rack(z.detach().numpy()), dtype=torch.float64))
+            if polar is not None:
+                polar[:2] = z[:2]
         history["seconds"].append(time.perf_counter() - t0)
         if callback is not None:
             callback(it, history)
@@ -385,7 +431,7 @@ def task_loss(model, shot) -> tuple[float, Any, bool]:
     return value, res, hit
 
 
-def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
+def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
     history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
     best = [np.inf, 0]
     t_start = time.perf_counter()
@@ -403,6 +449,8 @@ def _optimise_cma(model, start, iters: int) -> dict[str, Any]:
         history["seconds"].append(time.perf_counter() - t0)
         if value < best[0]:
             best[:] = [value, len(history["loss"]) - 1]
+        if callback is not None:
+            callback(len(history["loss"]) - 1, history)
         return value, bool(hit and distance < TARGET_TOLERANCE)
 
     run_cma(start, CMA_SIGMA, iters, evaluate_shot)
@@ -428,18 +476,20 @@ def gradient_check(model, shot, step: float = 1e-6) -> dict[str, Any]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
-                        help="rollouts per method at most (default %(default)s)")
+                        help="rollouts per method at most, the start's included "
+                             "(default %(default)s)")
     parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="default",
                         help="the cue's shot: DiffTaichi's, one that passes above the rack, one away from it, or "
                              "'seeded': a miss drawn from --seed (default %(default)s)")
     parser.add_argument("--cue-pos", type=float, nargs=2, metavar=("X", "Y"), default=None,
-                        help="the cue's initial position [m] (with --cue-vel: any shot; overrides --start)")
+                        help="the cue's initial position [m] (with --cue-vel: any shot; overrides --start; default: "
+                             "the --start shot's)")
     parser.add_argument("--cue-vel", type=float, nargs=2, metavar=("VX", "VY"), default=None,
-                        help="the cue's initial velocity [m/s] (with --cue-pos)")
+                        help="the cue's initial velocity [m/s] (with --cue-pos; default: the --start shot's)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {','.join(METHODS)} (default all)")
     parser.add_argument("--plot", type=str, default=None, metavar="PATH.png",
-                        help="also write the loss curves of the methods as a PNG (needs matplotlib)")
+                        help="also write the loss curves of the methods as a PNG (needs matplotlib; default: none)")
     parser.add_argument("--optimizer", choices=OPTIMIZERS, default="gd",
                         help="the optimiser of the squared distance: DiffTaichi's plain gradient descent or Adam, "
                              "learning rate 0.01 (default %(default)s)")
@@ -457,10 +507,6 @@ def check_arguments(args: argparse.Namespace) -> str | None:
         gaps = np.linalg.norm(rack_positions() - np.asarray(args.cue_pos)[None], axis=1) - 2 * RADIUS
         if gaps.min() < 0.0:
             return f"--cue-pos puts the cue inside rack ball {int(np.argmin(gaps)) + 1} (overlap {-gaps.min():.3g} m)"
-    try:
-        parse_methods(args.methods, METHODS)
-    except ValueError as exc:
-        return str(exc)
     if args.plot is not None:
         import os
 
@@ -469,29 +515,6 @@ def check_arguments(args: argparse.Namespace) -> str | None:
         if os.path.abspath(args.plot) == os.path.abspath(str(args.out)):
             return "--plot and --out must be different files"
     return None
-
-
-def plot_losses(curves: dict[str, list], path: str, title: str) -> None:
-    """The loss per rollout of each method (log scale), written atomically to ``path``."""
-    import matplotlib
-
-    from sim.logging import save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for method, curve in curves.items():
-        ax.semilogy(np.arange(len(curve)), np.maximum(np.asarray(curve, dtype=np.float64), 1e-12),
-                    label=f"{method} ({len(curve)} rollouts)")
-    ax.set_xlabel("iteration (rollout)")
-    ax.set_ylabel("loss [m^2] (a miss: the lifted pair's loss)")
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    try:
-        save_figure(fig, path)
-    finally:
-        plt.close(fig)
 
 
 def start_of(args: argparse.Namespace, model) -> tuple[tuple[float, ...], str]:
@@ -532,7 +555,8 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     shot, name = start_of(args, model)
     out, curves = {}, {}
     for method in methods:
-        result = optimise(model, shot, args.iters, method, args.optimizer)
+        with progress(f"{NAME} {method}", args.iters) as callback:
+            result = optimise(model, shot, args.iters, method, args.optimizer, callback=callback)
         h = result.pop("history")
         curves[method] = h["loss"]
         frames = {"iteration": np.arange(len(h["loss"]))}
@@ -542,6 +566,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         log_shot(log, model, res, method)
         out[method] = result
     if args.plot is not None:
-        plot_losses(curves, args.plot, f"billiards from '{name}' ({args.optimizer})")
+        plot_loss_curves(curves, args.plot, f"billiards from '{name}' ({args.optimizer})",
+                         "loss [m^2] (a miss: the lifted pair's loss)")
     return {"scene": NAME, "start": name, "shot": list(shot), "goal": list(GOAL), "iters": args.iters,
             "optimizer": args.optimizer, "methods": out}

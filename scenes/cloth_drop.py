@@ -16,6 +16,7 @@ import argparse
 from typing import Any
 
 from scenes import sim_common
+from scenes.obstacle import add_mesh_arguments, check_mesh_arguments, placed_mesh
 from scenes.registry import positive_int
 from scenes.sim_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
 from scenes.sim_common import run_scene
@@ -42,10 +43,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cloth-res", type=positive_int, default=CLOTH_CELLS,
                         help=f"cloth cells per side (the cloth's size, density and spring constants kept; "
                              f"default {CLOTH_CELLS})")
+    add_mesh_arguments(parser, "the cloth falls onto")
+
+
+def _cloth_box(args: argparse.Namespace):
+    """The cloth's box at the start (low (3,), high (3,)) [m], its thickness included."""
+    import numpy as np
+
+    centre = np.array([*CLOTH_CENTRE_XY, CLOTH_HEIGHT])
+    half = np.array([CLOTH_SIZE / 2, CLOTH_SIZE / 2, 0.0]) + THICKNESS
+    return centre - half, centre + half
+
+
+def check_arguments(args: argparse.Namespace) -> str | None:
+    """A usage error for the ``--mesh`` options (None when they are fine)."""
+    return check_mesh_arguments(args, CLOTH_CENTRE_XY, _cloth_box(args))
 
 
 def build(builder: Any, args: argparse.Namespace) -> None:
-    """Adds the cloth (``--cloth-res`` cells per side), the sphere, the box and the ground plane."""
+    """Adds the cloth (``--cloth-res`` cells per side), the sphere and the box (or the ``--mesh``
+    obstacle, :mod:`scenes.obstacle`) and the ground plane."""
     from sim.mesh_io import box_mesh, icosphere
 
     cells = int(getattr(args, "cloth_res", CLOTH_CELLS))
@@ -55,8 +72,11 @@ def build(builder: Any, args: argparse.Namespace) -> None:
         corner, None, cells, cells, cell, cell,
         density=DENSITY, stretch_stiffness=20.0, shear_stiffness=10.0, bend_stiffness=1.0, damping=0.01,
     )
-    builder.add_static_mesh(*icosphere(SPHERE_RADIUS, 2), pos=SPHERE_CENTRE)
-    builder.add_static_mesh(*box_mesh(BOX_HALF), pos=BOX_CENTRE)
+    if getattr(args, "mesh", None) is not None:
+        builder.add_static_mesh(*placed_mesh(args, CLOTH_CENTRE_XY))
+    else:
+        builder.add_static_mesh(*icosphere(SPHERE_RADIUS, 2), pos=SPHERE_CENTRE)
+        builder.add_static_mesh(*box_mesh(BOX_HALF), pos=BOX_CENTRE)
     builder.add_ground_plane()
     builder.set_contact(restitution=RESTITUTION, friction=FRICTION, thickness=THICKNESS)
 

@@ -35,11 +35,12 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import parse_methods, run_cma
+from scenes.optim import parse_methods, progress, run_cma
 from scenes.registry import int_at_least
 from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
 NAME = "cloth_toss"
+USES_SEED = "seed of the drawn start"
 DESCRIPTION = "Optimise a cloth's initial linear and angular velocity so it lands draped over a sphere"
 PRECISIONS = ("float64",)
 SUPPORTS_STEPS = False
@@ -181,7 +182,7 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "cma":
-        return _optimise_cma(problem, iters)
+        return _optimise_cma(problem, iters, callback)
     history = _history()
     v = torch.tensor(problem.u0[:3], dtype=torch.float64, requires_grad=True)
     omega = torch.tensor(problem.u0[3:], dtype=torch.float64, requires_grad=True)
@@ -205,7 +206,7 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     return _result(history, reached, time.perf_counter() - t0)
 
 
-def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
+def _optimise_cma(problem: Problem, iters: int, callback=None) -> dict[str, Any]:
     """CMA-ES on the drape loss's values, ``iters`` rollouts (the first: the start itself, the reference)."""
     import torch
 
@@ -221,6 +222,8 @@ def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
         history["grad_norm"].append(0.0)
         if reached[0] is None and loss <= (1.0 - TARGET_CUT) * history["loss"][0]:
             reached[0] = len(history["loss"]) - 1
+        if callback is not None:
+            callback(len(history["loss"]) - 1, history)
         return loss, False  # spend the whole budget, like the gradient methods
 
     evaluate(problem.u0.copy())
@@ -231,7 +234,8 @@ def _optimise_cma(problem: Problem, iters: int) -> dict[str, Any]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=60,
-                        help="rollouts per method (default %(default)s)")
+                        help="rollouts per method, the start's included: N - 1 steps "
+                             "(default %(default)s)")
     parser.add_argument("--methods", default="proposed",
                         help=f"comma-separated subset of {','.join(METHODS)} (default %(default)s)")
     parser.add_argument("--cloth-res", type=int_at_least(2), default=CELLS,
@@ -259,7 +263,8 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:
-        result = optimise(problem, args.iters, method)
+        with progress(f"{NAME} {method}", args.iters) as callback:
+            result = optimise(problem, args.iters, method, callback=callback)
         h = result.pop("history")
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]),
                         sequence={"iteration": np.arange(len(h["loss"]))})

@@ -12,6 +12,8 @@ boundary would never come back.
 
 from __future__ import annotations
 
+import contextlib
+
 
 class GuardedAdam:
     """Adam on one tensor ``v`` (requires grad) with the guarded second phase.
@@ -130,3 +132,57 @@ def central_difference_check(analytic, value, x, step: float) -> dict:
         numeric[k] = (values[0] - values[1]) / (2.0 * step)
     return {"analytic": analytic.tolist(), "numeric": numeric.tolist(),
             "relative_error": float(np.linalg.norm(analytic - numeric) / max(np.linalg.norm(numeric), 1e-300))}
+
+
+@contextlib.contextmanager
+def progress(description: str, total: int):
+    """A progress bar of an optimisation (tqdm on stderr, shown when stderr is a terminal): yields
+    the ``callback(iteration, history)`` the scenes' optimisers call after each rollout; the bar
+    shows the iterations done and the last loss."""
+    import sys
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=description, unit="it", file=sys.stderr, disable=None, leave=False)
+
+    def callback(iteration: int, history) -> None:
+        bar.update(max(iteration + 1 - bar.n, 0))
+        losses = history.get("loss") if isinstance(history, dict) else None
+        if losses:
+            bar.set_postfix_str(f"loss {losses[-1]:.3g}", refresh=False)
+
+    try:
+        yield callback
+    finally:
+        bar.close()
+
+
+def plot_loss_curves(curves: dict, path: str, title: str, ylabel: str) -> None:
+    """The loss per rollout of each method (``curves``: name -> values; log scale), written
+    atomically to ``path``; a one-rollout run (an exactly zero gradient at the start) is drawn
+    flat and says so."""
+    import matplotlib
+    import numpy as np
+
+    from sim.logging import save_figure
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    longest = max((len(c) for c in curves.values()), default=1)
+    for method, curve in curves.items():
+        values = np.maximum(np.asarray(curve, dtype=np.float64), 1e-12)
+        if len(values) == 1:  # an exactly zero gradient at the start: the run stops at once
+            ax.semilogy([0, max(longest - 1, 1)], [values[0], values[0]], linestyle="--",
+                        label=f"{method} (gradient 0: stops, drawn flat)")
+            continue
+        ax.semilogy(np.arange(len(values)), values, label=f"{method} ({len(values)} rollouts)")
+    ax.set_xlabel("iteration (rollout)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    try:
+        save_figure(fig, path)
+    finally:
+        plt.close(fig)

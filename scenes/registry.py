@@ -4,7 +4,8 @@ A scene is a module that defines:
 
 * ``NAME: str`` and ``DESCRIPTION: str`` (one line, shown by ``--list``);
 * ``add_arguments(parser)``: adds its own options to an ``argparse`` parser that already has the
-  common ``--out``, ``--seed`` and ``--precision`` (and ``--steps`` if ``SUPPORTS_STEPS``);
+  common ``--out`` and ``--precision`` (``--steps`` if ``SUPPORTS_STEPS``; ``--seed`` if
+  ``USES_SEED``, the help text of a scene that draws something at random);
 * optionally ``PRECISIONS`` (default ``("float64",)``; the CLI offers exactly these)
   and ``SUPPORTS_STEPS`` (default ``False``);
 * optionally ``check_arguments(args) -> str | None``: a usage error (exit code 2) for options

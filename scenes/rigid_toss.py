@@ -15,7 +15,8 @@ import argparse
 from typing import Any
 
 from scenes.sim_common import PRECISIONS as PRECISIONS, SUPPORTS_STEPS as SUPPORTS_STEPS
-from scenes.sim_common import add_arguments as add_arguments
+from scenes import sim_common
+from scenes.obstacle import add_mesh_arguments, check_mesh_arguments, placed_mesh
 from scenes.sim_common import run_scene
 
 NAME = "rigid_toss"
@@ -30,14 +31,35 @@ REST_POS = (0.8, 0.0, 0.1)
 GROUND_HALF = (3.0, 3.0, 0.1)
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The simulation options without the cloth integrator's (no cloth here)."""
+    sim_common.add_arguments(parser, cloth=False)
+    add_mesh_arguments(parser, "the tossed box lands on and runs into (in place of the resting box)")
+
+
+LANDING_XY = (0.3, 0.0)
+"""Where ``--mesh`` is centred [m]: the tossed box's first touchdown is near here."""
+
+
+def check_arguments(args: argparse.Namespace) -> str | None:
+    """A usage error for the ``--mesh`` options (None when they are fine)."""
+    import numpy as np
+
+    return check_mesh_arguments(args, LANDING_XY, (np.asarray(TOSS_POS) - 2 * BOX_HALF, np.asarray(TOSS_POS) + 2 * BOX_HALF))
+
+
 def build(builder: Any, args: argparse.Namespace) -> None:
-    """Adds the two boxes, the ground box and the ground plane."""
+    """Adds the two boxes (the resting one replaced by the ``--mesh`` obstacle,
+    :mod:`scenes.obstacle`), the ground box and the ground plane."""
     from sim.mesh_io import box_mesh
 
     v, t = box_mesh(BOX_HALF)
     builder.add_rigid_body(v, t, density=DENSITY, pos=TOSS_POS, velocity=TOSS_VELOCITY,
                            angular_velocity=TOSS_ANGULAR_VELOCITY)
-    builder.add_rigid_body(v, t, density=DENSITY, pos=REST_POS)
+    if getattr(args, "mesh", None) is not None:
+        builder.add_static_mesh(*placed_mesh(args, LANDING_XY))
+    else:
+        builder.add_rigid_body(v, t, density=DENSITY, pos=REST_POS)
     builder.add_static_mesh(*box_mesh(GROUND_HALF), pos=(0.0, 0.0, -GROUND_HALF[2]))
     builder.add_ground_plane()
     builder.set_contact(restitution=0.2, friction=0.4)

@@ -119,8 +119,28 @@ def warp_device(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{text!r} is not usable here ({exc}); available: {available}") from None
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of every simulation scene: ``--dt``, ``--substeps``, ``--device``."""
+IMPLICIT_FLAGS = {"cg_tolerance": "tolerance", "max_strain_step": "max_strain_step", "contact_passes": "contact_passes"}
+"""The implicit integrator's options: CLI destination -> its ``integrator_options`` key."""
+
+
+def integrator_options(args: argparse.Namespace) -> dict:
+    """The implicit integrator's options given on the command line; ValueError naming the flag
+    when one is given without ``--integrator implicit``."""
+    kind = getattr(args, "integrator", "semi_implicit")
+    options = {}
+    for flag, key in IMPLICIT_FLAGS.items():
+        value = getattr(args, flag, None)
+        if value is None:
+            continue
+        if kind != "implicit":
+            raise ValueError(f"--{flag.replace('_', '-')} applies to --integrator implicit only")
+        options[key] = (value or None) if key == "max_strain_step" else value
+    return options
+
+
+def add_arguments(parser: argparse.ArgumentParser, cloth: bool = True) -> None:
+    """Options of every simulation scene: ``--dt``, ``--substeps``, ``--device``, ...; with
+    ``cloth``, the cloth integrator's (``--integrator`` and the implicit one's options)."""
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT,
                         help=f"frame time step [s] (default 1/60 = {DEFAULT_DT:.6g})")
     parser.add_argument("--substeps", type=positive_int, default=DEFAULT_SUBSTEPS,
@@ -133,14 +153,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--response", choices=RESPONSES, default=DEFAULT_RESPONSE,
                         help="collision response: Gauss-Seidel impulses or the replayed exact solve "
                              f"that rollouts differentiate (default {DEFAULT_RESPONSE})")
-    parser.add_argument("--integrator", choices=INTEGRATORS, default="semi_implicit",
-                        help="cloth springs: semi-implicit Euler (explicit) or backward Euler with a CG solve "
-                             "(default %(default)s)")
-    parser.add_argument("--cg-tolerance", type=positive_float, default=None,
-                        help="implicit integrator: CG's relative residual (default 1e-8)")
-    parser.add_argument("--max-strain-step", type=non_negative_float, default=None,
-                        help="implicit integrator: halve a substep whose springs' strain grows by more than this "
-                             "(up to 4 times; 0 = never; default 0.1)")
+    if cloth:
+        parser.add_argument("--integrator", choices=INTEGRATORS, default="semi_implicit",
+                            help="cloth springs: semi-implicit Euler (explicit) or backward Euler with a CG solve "
+                                 "(default %(default)s)")
+        parser.add_argument("--cg-tolerance", type=positive_float, default=None,
+                            help="implicit integrator only: CG's relative residual (default 1e-8)")
+        parser.add_argument("--max-strain-step", type=non_negative_float, default=None,
+                            help="implicit integrator only: halve a substep whose springs' strain grows by more "
+                                 "than this (up to 4 times; 0 = never; default 0.1)")
     parser.add_argument("--thickness", type=non_negative_float, default=None,
                         help="contact thickness [m]: the separation the proximity pass keeps between primitives "
                              "(default: the scene's; 0 = 1e-4 x the diagonal of the collidable vertices' box)")
@@ -148,9 +169,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CCD + impulse rounds per substep before the rigid impact-zone fail-safe "
                              f"(>= 1; default {DEFAULT_COLLISION_ROUNDS})")
     add_ccd_arguments(parser)
-    parser.add_argument("--contact-passes", type=non_negative_int, default=None,
-                        help="implicit integrator: constrained re-solves per substep for the particles in contact "
-                             "(0 = collision response after the solve only; default 1)")
+    if cloth:
+        parser.add_argument("--contact-passes", type=non_negative_int, default=None,
+                            help="implicit integrator only: constrained re-solves per substep for the particles in "
+                                 "contact (0 = collision response after the solve only; default 1)")
 
 
 def add_ccd_arguments(parser: argparse.ArgumentParser) -> None:
@@ -385,15 +407,7 @@ def simulate(
     if prepare is not None:
         model = prepare(model)
     kind = getattr(args, "integrator", "semi_implicit")
-    options = {}
-    for flag, key in (("cg_tolerance", "tolerance"), ("max_strain_step", "max_strain_step"),
-                      ("contact_passes", "contact_passes")):
-        value = getattr(args, flag, None)
-        if value is None:
-            continue
-        if kind != "implicit":
-            raise ValueError(f"--{flag.replace('_', '-')} applies to --integrator implicit only")
-        options[key] = (value or None) if key == "max_strain_step" else value
+    options = integrator_options(args)
     flags = f"raise --substeps (now {substeps}), lower --dt (now {dt:g} s)"
     if kind != "implicit":
         refused = check_explicit_substep(model, dt / substeps)
@@ -506,7 +520,7 @@ def simulate(
         "components": sorted(model.components),
         "particles": int(model.particle_count),
         "bodies": int(model.body_count),
-        "wall_seconds": round(wall, 4),
+        "stepping_seconds": round(wall, 4),  # the stepping loop alone (wall_time_s: the whole run)
         "steps_per_second": steps / wall if wall > 0 else None,
         "step_ms_mean": 1e3 * float(np.mean(step_times)) if step_times else 0.0,
         "contacts": int(total_contacts),

@@ -672,7 +672,7 @@ class ModelBuilder:
         body_inv_inertia = np.linalg.inv(body_inertia) if len(body_inertia) else body_inertia.copy()
         body_inv_inertia = 0.5 * (body_inv_inertia + body_inv_inertia.transpose(0, 2, 1))
 
-        return Model(
+        model = Model(
             device=str(device),
             components=frozenset(self._components),
             gravity=self._gravity.copy(),
@@ -710,3 +710,7 @@ class ModelBuilder:
             thickness=self._thickness,
             particle_drag=self._particle_drag,
         )
+        from sim.penetration import warn_initial_penetrations
+
+        warn_initial_penetrations(model)
+        return model

@@ -12,10 +12,14 @@ Conventions (see ``docs/design.md``, section "rerun conventions"):
 * atomic files: the stream writes to a hidden temporary file next to the requested path, which is
   renamed onto the target only when the ``with`` block exits without an exception. On error the
   temporary file is removed, so no half-written ``.rrd`` is ever left behind. With
-  ``keep_partial=True`` (used by :class:`sim.recorder.SimRecorder`) an exception instead flushes the
-  stream and renames the file too, so the target holds a complete, readable recording of
-  everything logged before the error. Either way the target is only ever replaced by a finished
-  file; a hard kill (SIGKILL, power loss) leaves the target untouched and a stale temporary file.
+  ``keep_partial=True`` (used by :class:`sim.recorder.SimRecorder` and the scene CLI) an exception
+  instead flushes the stream and renames it to ``NAME.partial.rrd`` beside the target: a
+  complete, readable recording of everything logged before the error, whose ``/status`` says
+  where it stopped. The target ``NAME.rrd`` is only ever replaced by a finished run, so an
+  earlier good recording survives a failed one. A hard kill (SIGKILL, power loss) leaves the
+  target untouched and a stale temporary file, which the next logger writing beside it removes;
+* the target must be a regular file or a new path: a folder, device or FIFO is refused, and a
+  symbolic link is followed (the file it points to is replaced).
 
 Example:
     >>> with RerunLogger("out.rrd", recording_name="demo") as log:  # doctest: +SKIP
@@ -25,6 +29,7 @@ Example:
 
 from __future__ import annotations
 
+import glob
 import os
 import uuid
 from collections.abc import Mapping, Sequence
@@ -35,7 +40,43 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-__all__ = ["RerunLogger", "time_series_blueprint", "grid_of_time_series"]
+__all__ = ["RerunLogger", "time_series_blueprint", "grid_of_time_series", "output_path", "partial_path"]
+
+
+def output_path(path: str | os.PathLike[str], name: str = "path") -> Path:
+    """The file a recording for ``path`` replaces: ``path`` itself, or the file a symbolic link
+    points to. Raises FileNotFoundError when its folder does not exist and ValueError when it is
+    not a regular file (a folder, device or FIFO); both messages name ``name``."""
+    target = Path(path)
+    if target.is_symlink():
+        target = Path(os.path.realpath(target))
+    if not target.parent.is_dir():
+        raise FileNotFoundError(f"{name}: folder {str(target.parent)!r} does not exist")
+    if target.exists() and not target.is_file():
+        kind = "a folder" if target.is_dir() else "not a regular file (a device, FIFO or socket)"
+        raise ValueError(f"{name}: {str(target)!r} is {kind}; give a regular file or a new path")
+    return target
+
+
+def partial_path(path: str | os.PathLike[str]) -> Path:
+    """Where a failed or interrupted run keeps its frames: ``NAME.partial.rrd`` for ``NAME.rrd``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.partial{path.suffix}" if path.suffix else f"{path.name}.partial")
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Removes the temporary files ``.NAME.PID.tmp`` that killed runs (PID no longer alive) left
+    beside ``path``."""
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        pid = tmp.name[len(path.name) + 2:-len(".tmp")]
+        if not tmp.name.startswith(f".{path.name}.") or not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except (PermissionError, OverflowError):
+            pass  # alive (another user's) or not a process id: not ours to remove
 
 
 class RerunLogger:
@@ -43,16 +84,20 @@ class RerunLogger:
 
     Use it as a context manager. Inside the block, data goes to ``<dir>/.<name>.<pid>.tmp``; on a
     clean exit the temporary file is renamed to ``path``; on an exception it is deleted (or, with
-    ``keep_partial``, renamed to ``path`` as well) and the exception propagates.
+    ``keep_partial``, renamed to :func:`partial_path` of ``path``) and the exception propagates.
+    After the block, :attr:`written` is the file that holds the recording (None: nothing kept).
 
     Args:
-        path: Destination ``.rrd`` file. Its parent folder must exist.
+        path: Destination ``.rrd`` file: a regular file or a new path in an existing folder (a
+            symbolic link is followed).
         application_id: Rerun application id.
         recording_name: Human-readable recording name (also part of the deterministic recording id).
         seed: Seed of the run (part of the deterministic recording id).
-        keep_partial: On an exception inside the block, keep what was logged so far as ``path``
-            (flushed, complete and readable) instead of deleting it. If flushing itself fails the
-            temporary file is deleted either way.
+        name: How error messages name ``path`` (e.g. the CLI's ``--out``).
+        keep_partial: On an exception inside the block, keep what was logged so far as
+            ``NAME.partial.rrd`` (flushed, complete and readable, with ``/status`` saying where it
+            stopped) instead of deleting it. If flushing itself fails the temporary file is
+            deleted either way.
     """
 
     def __init__(
@@ -63,11 +108,13 @@ class RerunLogger:
         recording_name: str = "tunnelsim",
         seed: int = 0,
         keep_partial: bool = False,
+        name: str = "path",
     ) -> None:
-        self.path = Path(path)
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"output folder does not exist: {self.path.parent}")
+        self.path = output_path(path, name)
+        self.partial_path = output_path(partial_path(self.path), f"{name} (its partial recording)")
         self.tmp_path = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        self.written: Path | None = None
+        self._status_logged = False
         self.application_id = application_id
         self.recording_name = recording_name
         self.seed = int(seed)
@@ -82,6 +129,9 @@ class RerunLogger:
         rec = rr.RecordingStream(
             self.application_id, recording_id=recording_id, send_properties=False
         )
+        _remove_stale_temporaries(self.path)
+        self.written = None
+        self._status_logged = False
         rec.save(str(self.tmp_path))  # the sink must be set before anything is logged
         rec.set_log_time_enabled(False)
         rec.set_log_tick_enabled(False)
@@ -95,17 +145,24 @@ class RerunLogger:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        rec, self.rec = self.rec, None
+        rec = self.rec
         flushed = False
         try:
             if rec is not None:
+                if exc_type is not None and self.keep_partial and not self._status_logged:
+                    self.log_text("/status", f"interrupted: {exc_type.__name__}: {exc}")
                 rec.flush()
                 rec.disconnect()
             flushed = True
         finally:
-            keep = exc_type is None or (self.keep_partial and flushed)
-            if keep and self.tmp_path.exists():
-                os.replace(self.tmp_path, self.path)
+            self.rec = None
+            if not flushed:
+                target = None  # an unfinished file replaces nothing
+            else:
+                target = self.path if exc_type is None else self.partial_path if self.keep_partial else None
+            if target is not None and self.tmp_path.exists():
+                os.replace(self.tmp_path, target)
+                self.written = target
             else:
                 self.tmp_path.unlink(missing_ok=True)
 
@@ -197,6 +254,8 @@ class RerunLogger:
             media_type: ``text/plain`` or ``text/markdown``.
         """
         self.stream.log(entity, rr.TextDocument(text, media_type=media_type), static=True)
+        if entity == "/status":
+            self._status_logged = True
 
 
 def grid_of_time_series(name: str, views: Mapping[str, Sequence[str]]) -> rrb.Grid:

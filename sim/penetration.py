@@ -460,3 +460,26 @@ def penetrations(model: Model, state: State | Mapping, tol: float = DEFAULT_TOL)
     """
     rep = PenetrationChecker(model, tol).check(state)
     return rep.count, rep.max_depth
+
+
+class InitialPenetrationWarning(UserWarning):
+    """A model whose rigid bodies start interpenetrating something (:func:`warn_initial_penetrations`)."""
+
+
+def warn_initial_penetrations(model: Model, stacklevel: int = 3) -> int:
+    """Warns (:class:`InitialPenetrationWarning`) when the model's initial state has rigid-body
+    penetrations: a body's vertex inside another body, a static solid or below a ground plane,
+    or crossing surfaces (:class:`PenetrationChecker`). Contacts only keep apart what starts
+    apart, so such a start is almost always a placement mistake. Models without rigid bodies are
+    not checked (the builder refuses overlapping spheres itself). Returns the count."""
+    import warnings
+
+    if "rigid" not in model.components:
+        return 0
+    report = PenetrationChecker(model).check(model.state())
+    if report.count:
+        warnings.warn(f"the model's initial state has {report.count} interpenetrations of rigid bodies "
+                      f"({report.summary()}): contacts cannot separate bodies that start inside each other "
+                      f"or inside a static mesh; move them apart", InitialPenetrationWarning, stacklevel=stacklevel)
+    return int(report.count)
+

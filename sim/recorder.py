@@ -34,11 +34,13 @@ Default blueprint: a 3D view of ``/world`` next to a time-series view of ``/metr
 Interruption (the chosen behaviour): the recording goes to a hidden temporary file that replaces
 ``path`` only when the recorder closes. On a clean close the file holds every frame. If the
 ``with`` block is left by an exception (including ``KeyboardInterrupt``), the frames recorded so
-far are flushed, ``/status`` says ``interrupted ...``, the file is still renamed onto ``path`` (a
-complete, readable recording of those frames) and the exception propagates. The stream is
-flushed after every frame, so a hard kill (SIGKILL) leaves ``path`` untouched and the frames so far
-in the hidden ``.<name>.<pid>.tmp`` file next to it. A :class:`SimRecorder` attached to a
-caller's logger (:meth:`SimRecorder.on_logger`) leaves the file's fate to that logger.
+far are flushed, ``/status`` says ``interrupted ...``, the file is renamed to ``NAME.partial.rrd``
+beside ``path`` (a complete, readable recording of those frames; ``path`` itself keeps whatever it
+held) and the exception propagates. The stream is flushed after every frame, so a hard kill
+(SIGKILL) leaves ``path`` untouched and the frames so far in the hidden ``.<name>.<pid>.tmp`` file
+next to it (the next recording written beside it removes that file). A :class:`SimRecorder`
+attached to a caller's logger (:meth:`SimRecorder.on_logger`) leaves the file's fate to that
+logger.
 
 Example:
     >>> with SimRecorder("run.rrd", model, application_id="drape", seed=0) as rec:  # doctest: +SKIP

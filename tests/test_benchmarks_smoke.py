@@ -143,3 +143,18 @@ def test_host_reads_tiny(tmp_path):
     assert all(r["host_per_substep"] > 0 and math.isfinite(r["numpy_per_substep"]) for r in rows)
     assert "| cloth_drop | replayed |" in _read(tmp_path / "host_reads")
     assert len(json.load(open(tmp_path / "host_reads.json"))["rows"]) == 6
+
+
+def test_tunnel_seeds_tiny_and_resumes(tmp_path, monkeypatch):
+    """One seed, two iterations: the report counts it; a second call finds it done (no rerun)."""
+    from benchmarks import tunnel_seeds
+
+    out = str(tmp_path / "ts")
+    assert tunnel_seeds.main(["--first", "0", "--last", "1", "--iters", "2", "--out", out]) == 0
+    rows = json.loads((tmp_path / "ts.json").read_text())["rows"]
+    assert [r["seed"] for r in rows] == [0] and not rows[0]["reached"]
+    assert "**0 / 1**" in (tmp_path / "ts.md").read_text()
+    (tmp_path / "ts.md").unlink()
+    monkeypatch.setattr(tunnel_seeds, "run_seed", None)  # a rerun would fail: the seed comes from the file
+    assert tunnel_seeds.main(["--first", "0", "--last", "1", "--iters", "2", "--out", out]) == 0
+    assert json.loads((tmp_path / "ts.json").read_text())["rows"] == rows and (tmp_path / "ts.md").exists()

@@ -99,3 +99,18 @@ def test_shots_inside_the_rack_are_projected_out():
     # wedged between two touching balls of a row: pushing out of one pushes into the other
     wedged = B.outside_the_rack((*(0.5 * (rack[1] + rack[2]) + (0.001, 0.0)), 0.3, 0.0))
     assert (np.linalg.norm(rack - np.asarray(wedged[:2])[None], axis=1) - 2 * B.RADIUS).min() >= 0.0
+
+
+def test_the_miss_phase_polar_variables_and_their_gradient():
+    """(x, y, speed, heading / HEADING_SCALE) round-trips to the shot, and the chain rule of
+    ``_polar_gradient`` equals autograd through ``_from_polar``."""
+    import torch
+
+    shot = (0.14, 0.34, -0.37, -0.24)
+    polar = torch.tensor(B._to_polar(shot), dtype=torch.float64, requires_grad=True)
+    back = B._from_polar(polar)
+    np.testing.assert_allclose(back.detach().numpy(), shot, rtol=0, atol=1e-15)
+    weights = torch.tensor([0.3, -1.2, 2.0, 0.7], dtype=torch.float64)
+    (back * weights).sum().backward()
+    np.testing.assert_allclose(B._polar_gradient(polar.detach(), weights).numpy(), polar.grad.numpy(),
+                               rtol=1e-14, atol=1e-15)

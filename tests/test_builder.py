@@ -539,3 +539,28 @@ def test_validation_errors_leave_builder_unchanged(case):
     with pytest.raises(ValueError, match=match):
         call(b)
     assert _snapshot(b) == before
+
+
+def test_rigid_bodies_that_start_interpenetrating_are_warned_about():
+    """A box placed partly inside another: InitialPenetrationWarning naming the count (the
+    independent checker's); boxes touching face to face and resting on the ground: silence."""
+    import warnings
+
+    from sim.mesh_io import box_mesh
+    from sim.penetration import InitialPenetrationWarning
+
+    v, t = box_mesh(0.1)
+
+    def build(second_pos):
+        b = ModelBuilder()
+        b.add_rigid_body(v, t, density=500.0, pos=(0.0, 0.0, 0.1))
+        b.add_rigid_body(v, t, density=500.0, pos=second_pos)
+        b.add_static_mesh(*box_mesh((3.0, 3.0, 0.1)), pos=(0.0, 0.0, -0.1))
+        b.add_ground_plane()
+        return b.finalize()
+
+    with pytest.warns(InitialPenetrationWarning, match="2 interpenetrations of rigid bodies"):
+        build((0.15, 0.05, 0.15))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InitialPenetrationWarning)
+        build((0.2, 0.0, 0.1))  # touching face to face

@@ -218,8 +218,8 @@ def test_exception_mid_run_keeps_a_readable_file_of_the_frames_so_far(model, tmp
     path = tmp_path / "broken.rrd"
     with pytest.raises(RuntimeError, match="injected failure"):
         _write(path, model, frames=FRAMES, fail_at=3)
-    assert [p.name for p in tmp_path.iterdir()] == ["broken.rrd"], "no temporary file may remain"
-    info = read(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["broken.partial.rrd"], "no temporary file may remain"
+    info = read(tmp_path / "broken.partial.rrd")
     assert info["recordings"] and info["blueprints"]
     assert info["rows"]["/world/cloth"] == 3 and info["rows"]["/world/bodies/0"] == 3
     assert info["static_rows"]["/world/cloth"] == 1
@@ -234,7 +234,8 @@ def test_keyboard_interrupt_also_finalises(model, tmp_path):
         with SimRecorder(path, model, application_id="t", seed=0) as rec:
             rec.record(0, 0.0, model.state())
             raise KeyboardInterrupt
-    info = read(path)
+    assert not path.exists()
+    info = read(tmp_path / "ctrl_c.partial.rrd")
     assert info["rows"]["/world/cloth"] == 1
     assert status(info).startswith("interrupted after 1 frames: KeyboardInterrupt")
 

@@ -283,21 +283,27 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def test_no_rrd_left_behind_on_error(tmp_path):
-    """A scene failing after it started writing leaves neither the .rrd nor its temporary file,
-    and an existing file at --out is left untouched."""
+def test_a_failed_run_keeps_its_frames_beside_the_output_and_never_replaces_it(tmp_path):
+    """A scene failing after it started writing leaves no NAME.rrd and no temporary file: its
+    frames go to NAME.partial.rrd (readable, /status says why), which the message names; an
+    existing NAME.rrd is left untouched."""
     out = tmp_path / "x.rrd"
+    partial = tmp_path / "x.partial.rrd"
     proc = run_cli("paper_quadratic", "--out", str(out), "--iters", "1", code=FAILING_RUN)
     assert proc.returncode == 1
-    assert "injected failure after logging" in proc.stderr and "no recording written" in proc.stderr
+    assert "injected failure after logging" in proc.stderr
+    assert f"the frames recorded so far are in {partial}" in proc.stderr and f"no {out} written" in proc.stderr
     assert proc.stdout == ""
-    assert not list(tmp_path.iterdir()), list(tmp_path.iterdir())
+    assert [p.name for p in tmp_path.iterdir()] == ["x.partial.rrd"]
+    rows, _ = read_rrd(partial, blueprint=False)
+    assert rows.get("/partial") == 3 and rows.get("/status") == 1
 
     out.write_bytes(b"previous recording")
     proc = run_cli("paper_quadratic", "--out", str(out), "--iters", "1", code=FAILING_RUN)
     assert proc.returncode == 1
     assert out.read_bytes() == b"previous recording"
-    assert [p.name for p in tmp_path.iterdir()] == ["x.rrd"]
+    assert f"{out} is untouched" in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.partial.rrd", "x.rrd"]
 
 
 def test_divergent_optimiser_is_reported_not_raised():

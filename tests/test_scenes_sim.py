@@ -28,7 +28,7 @@ after ~15 steps, the ball reaches the cloth after ~4, box B rests on the ground 
 CLI_STEPS = 10
 SCENES = {"cloth_drop": cloth_drop, "rigid_toss": rigid_toss, "cloth_rigid": cloth_rigid}
 SUMMARY_FIELDS = (
-    "steps", "dt", "substeps", "wall_seconds", "steps_per_second", "contacts", "penetrations",
+    "steps", "dt", "substeps", "stepping_seconds", "steps_per_second", "contacts", "penetrations",
     "max_penetration_depth", "energy_drift", "energy_max_ratio", "failsafe_count",
 )
 COMPONENTS = {
@@ -198,13 +198,17 @@ def test_interrupted_run_keeps_a_readable_partial_recording(tmp_path, monkeypatc
         return real_step(self, *a, **k)
 
     monkeypatch.setattr(SemiImplicitIntegrator, "step", step)
-    out = tmp_path / "partial.rrd"
+    out = tmp_path / "run.rrd"
+    out.write_bytes(b"an earlier recording")
     assert main(["rigid_toss", "--out", str(out), "--steps", "50"]) == 130
-    assert "frames recorded so far" in capsys.readouterr().err
-    rows = read_rrd(out)
+    err = capsys.readouterr().err
+    assert f"the frames recorded so far are in {tmp_path / 'run.partial.rrd'}" in err
+    assert f"{out} is untouched" in err
+    assert out.read_bytes() == b"an earlier recording"  # a failed run never replaces a finished one
+    rows = read_rrd(tmp_path / "run.partial.rrd")
     assert rows.get("/metrics/energy/total", 0) == 3
     assert rows.get("/status", 0) >= 1
-    assert [p.name for p in tmp_path.iterdir()] == ["partial.rrd"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.partial.rrd", "run.rrd"]
 
 
 def test_too_few_substeps_stop_with_a_clear_error():

@@ -56,9 +56,11 @@ def test_proposed_reaches_the_target_baseline_cannot_leave_the_miss(problem):
     assert abs(float(t_hit) - problem.t_target) < TIME_TOLERANCE
     v_final = res.particle_qd[-1, 0].numpy()
     assert np.linalg.norm(v_final - problem.v_target) < VELOCITY_TOLERANCE * np.linalg.norm(problem.v_target)
-    # the hit phase only accepts iterates that lower its loss
-    kept = [loss for loss, good, took in zip(h["loss"], h["on_face"], h["accepted"]) if good and took]
-    assert all(b < a for a, b in zip(kept, kept[1:]))
+    # the hit phase only accepts iterates that lower its loss, or that move the contact into a
+    # step nearer the target's (where the bounce's velocity jumps) with a lower hit time error
+    kept = [(loss, crossed) for loss, good, took, crossed in zip(h["loss"], h["on_face"], h["accepted"], h["crossed"])
+            if good and took]
+    assert all(b < a or crossed for (a, _), (b, crossed) in zip(kept, kept[1:]))
 
     baseline = optimise(problem, 500, "baseline")
     assert baseline["stalled"] and not any(baseline["history"]["hit"])
