@@ -262,21 +262,13 @@ def _plot(done: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from scenes.optim import draw_loss_curves
+
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, start in zip(axes, ("default", "seed 0")):
-        for key, r in done.items():
-            method, s = key.split(" | ")
-            if s == start:
-                curve = np.asarray(r["loss_curve"], dtype=np.float64)
-                if len(curve) == 1:  # an exactly zero gradient at the start: the run stops there
-                    ax.semilogy([0, 200], [curve[0], curve[0]], linestyle="--",
-                                label=f"{method} (gradient 0: stops, drawn flat)")
-                    continue
-                ax.semilogy(np.arange(len(curve)), curve, label=f"{method} ({len(curve)} rollouts)")
+        curves = {key.split(" | ")[0]: r["loss_curve"] for key, r in done.items() if key.split(" | ")[1] == start}
+        draw_loss_curves(ax, curves, "loss (squared distance [m^2]; a miss: the method's own loss)")
         ax.set_title(f"billiards from '{start}'")
-        ax.set_xlabel("iteration (rollout)")
-        ax.set_ylabel("loss (squared distance [m^2]; a miss: the method's own loss)")
-        ax.legend(fontsize=8)
     save_figure(fig, path)
 
 

@@ -50,7 +50,8 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import central_difference_check, parse_methods, plot_loss_curves, progress, run_cma
+from scenes.optim import (central_difference_check, parse_methods, plot_loss_curves, progress,
+                          reported_iterate, run_cma)
 from scenes.registry import int_at_least
 
 NAME = "billiards"
@@ -395,16 +396,10 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
         history["seconds"].append(time.perf_counter() - t0)
         if callback is not None:
             callback(it, history)
-    last = reached if reached is not None else _last_reported(history)
+    last = reported_iterate(history["accepted"], reached, any(history["accepted"]))
     result = _result(history, last, reached, time.perf_counter() - t_start)
     result["zero_gradient_at"] = stalled
     return result
-
-
-def _last_reported(history) -> int:
-    """The last iterate, or the last accepted one when the run ended on a rejected step."""
-    flags = history["accepted"]
-    return len(flags) - 1 if flags[-1] or not any(flags) else max(i for i, a in enumerate(flags) if a)
 
 
 def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:

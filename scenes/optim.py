@@ -157,19 +157,11 @@ def progress(description: str, total: int):
         bar.close()
 
 
-def plot_loss_curves(curves: dict, path: str, title: str, ylabel: str) -> None:
-    """The loss per rollout of each method (``curves``: name -> values; log scale), written
-    atomically to ``path``; a one-rollout run (an exactly zero gradient at the start) is drawn
-    flat and says so."""
-    import matplotlib
+def draw_loss_curves(ax, curves: dict, ylabel: str) -> None:
+    """The loss per rollout of each method on ``ax`` (``curves``: name -> values; log scale); a
+    one-rollout run (an exactly zero gradient at the start) is drawn flat and says so."""
     import numpy as np
 
-    from sim.logging import save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
     longest = max((len(c) for c in curves.values()), default=1)
     for method, curve in curves.items():
         values = np.maximum(np.asarray(curve, dtype=np.float64), 1e-12)
@@ -180,8 +172,21 @@ def plot_loss_curves(curves: dict, path: str, title: str, ylabel: str) -> None:
         ax.semilogy(np.arange(len(values)), values, label=f"{method} ({len(values)} rollouts)")
     ax.set_xlabel("iteration (rollout)")
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
     ax.legend(fontsize=8)
+
+
+def plot_loss_curves(curves: dict, path: str, title: str, ylabel: str) -> None:
+    """:func:`draw_loss_curves` in a figure of its own, written atomically to ``path``."""
+    import matplotlib
+
+    from sim.logging import save_figure
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    draw_loss_curves(ax, curves, ylabel)
+    ax.set_title(title)
     try:
         save_figure(fig, path)
     finally:

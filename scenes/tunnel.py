@@ -328,15 +328,14 @@ def _miss_loss(problem: Problem, res, tracker, unmollified: bool):
     return loss + AIM_WEIGHT * ((w - 1.0 / 3.0) ** 2).sum(), root, w
 
 
-def _hit_loss(problem: Problem, res, t_hit, step: int):
-    """Relative squared errors of the hit time (:func:`impact_time` against the aimed shot's) and
-    the final velocity, plus a barrier that keeps the contact inside the designated face (zero
-    at the target)."""
+def _hit_loss(problem: Problem, res, t_hit, step: int, t_impact=None):
+    """Relative squared errors of the hit time (``t_impact``, default :func:`impact_time`) and the
+    final velocity, plus a barrier keeping the contact inside the designated face (0 at the target)."""
     import torch
 
     v_target = torch.as_tensor(problem.v_target, dtype=torch.float64)
     v_final = res.particle_qd[-1, 0]
-    t_impact = impact_time(problem, res, step, t_hit)
+    t_impact = impact_time(problem, res, step, t_hit) if t_impact is None else t_impact
     w = hit_coordinates(problem, res, step, t_impact)
     barrier = (torch.relu(problem.hit_margin - w) / problem.hit_margin).pow(2).sum()
     loss = (((t_impact - problem.impact_target) / problem.t_target) ** 2
@@ -413,13 +412,14 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         time_error = velocity_error = float("nan")
         if good:
             time_error, velocity_error = _hit_errors(problem, res, t_hit)
-            loss = _hit_loss(problem, res, t_hit, step)
+            t_impact = impact_time(problem, res, step, t_hit)
+            loss = _hit_loss(problem, res, t_hit, step, t_impact)
         done = good and _at_target(time_error, velocity_error)
         guarded = opt.guarded
         take = opt.judge(loss, good)
         crossed = False
         if good:
-            impact_error = abs(float(impact_time(problem, res, step, t_hit).detach()) - problem.impact_target)
+            impact_error = abs(float(torch.as_tensor(t_impact).detach()) - problem.impact_target)
             if not take and guarded and _crosses_towards_target(problem, crossing, step, impact_error):
                 take = crossed = True  # see _crosses_towards_target
             if take:
