@@ -6,8 +6,11 @@ host (``core.buffers.host``: a counter, a flag or positions; ``wp.array.numpy``)
 Each read is a synchronisation point: a step that reads a count between two launches cannot be
 recorded as one graph (``wp.ScopedCapture``) and, on a GPU, waits for the device each time. On the
 CPU a ``host`` view costs no copy, so these counts say how far the stage is from a capturable
-substep, not what it costs here. Per scene (defaults, both responses, ``--steps`` steps from the
-start).
+substep, not what it costs here. The run takes the device's path (:data:`core.buffers.PEEK` off:
+no look at a count that a GPU would have to copy). Per scene (defaults, both responses,
+``--steps`` steps from the start); for the Gauss-Seidel response also per CCD round
+(:meth:`sim.contact.detect.ContactDetection.ccd_round`) and how many rounds left the broad-phase
+cover's room, which the host then tests.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from benchmarks import report  # noqa: E402
 
 SCENES = ("cloth_drop", "rigid_toss", "cloth_rigid")
 RESPONSES = ("replayed", "gauss-seidel")
-READERS = ("sim.contact.detect", "sim.contact.response", "sim.contact.replayed", "sim.contact.gauss_seidel",
+READERS = ("sim.contact.detect", "sim.contact.response", "sim.contact.replayed",
            "sim.contact.contacts", "sim.contact.record", "collision.narrow_phase", "collision.broad_phase")
 """The modules of the collision stage that read device data through ``host`` (imported by name
 from :mod:`core.buffers`); the buffers' own writes through it (``upload``, ``zero``) are not
@@ -41,15 +44,32 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
     import warp as wp
 
     import core.buffers as buffers
+    from sim.contact.detect import ContactDetection
     from sim.contact.response import ImpulseCollisionHandler
 
     counts: collections.Counter = collections.Counter()
     inside = [0]
     original_host, original_numpy, original_call = buffers.host, wp.array.numpy, ImpulseCollisionHandler.__call__
+    original_round, original_host_round, original_peek = (ContactDetection.ccd_round, ContactDetection._ccd_round,
+                                                          buffers.PEEK)
+    in_round = [False]
 
     def counting_host(arr):
         counts["host"] += inside[0] > 0
+        counts["round_host"] += in_round[0]
         return original_host(arr)
+
+    def counting_round(self, *args):
+        counts["rounds"] += 1
+        in_round[0] = True
+        try:
+            return original_round(self, *args)
+        finally:
+            in_round[0] = False
+
+    def counting_host_round(self, *args):
+        counts["host_tested"] += 1
+        return original_host_round(self, *args)
 
     def counting_numpy(self):
         counts["numpy"] += inside[0] > 0
@@ -70,6 +90,9 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
         m.host = counting_host
     wp.array.numpy = counting_numpy
     ImpulseCollisionHandler.__call__ = counting_call
+    ContactDetection.ccd_round = counting_round
+    ContactDetection._ccd_round = counting_host_round
+    buffers.PEEK = False
     rows = []
     try:
         from scenes.sim_common import default_args, simulate
@@ -81,14 +104,21 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
                 summary, _ = simulate(module.build, default_args(steps=steps, response=response), None,
                                       name=name, progress=False)
                 substeps = steps * summary["substeps"]
+                rounds = counts["rounds"]
                 rows.append({"scene": name, "response": response, "substeps": substeps,
                              "host_per_substep": counts["host"] / substeps,
-                             "numpy_per_substep": counts["numpy"] / substeps})
+                             "numpy_per_substep": counts["numpy"] / substeps,
+                             "ccd_rounds_per_substep": rounds / substeps if rounds else None,
+                             "host_per_ccd_round": counts["round_host"] / rounds if rounds else None,
+                             "host_tested_rounds": counts["host_tested"]})
     finally:
         for m in modules:
             m.host = original_host
         wp.array.numpy = original_numpy
         ImpulseCollisionHandler.__call__ = original_call
+        ContactDetection.ccd_round = original_round
+        ContactDetection._ccd_round = original_host_round
+        buffers.PEEK = original_peek
     return rows
 
 
@@ -102,9 +132,15 @@ def main(argv=None) -> list[dict[str, Any]]:
     wp.config.quiet = True
     rows = count_reads(args.steps)
     lines = [f"Host reads inside the collision stage's calls, per substep, {args.steps} steps of each scene from "
-             "the start (defaults: 1/60 s, 8 substeps).", ""]
-    lines += report.table(["scene", "response", "host() per substep", "numpy() per substep"],
-                          [[r["scene"], r["response"], r["host_per_substep"], r["numpy_per_substep"]] for r in rows])
+             "the start (defaults: 1/60 s, 8 substeps), on the device's path (no look at a count that a GPU would "
+             "copy). For the Gauss-Seidel response also per CCD round, and the rounds whose motion left the "
+             "broad-phase cover, which the host then tests (a fresh query).", ""]
+    lines += report.table(["scene", "response", "host() per substep", "numpy() per substep", "CCD rounds per substep",
+                           "host() per CCD round", "rounds tested on the host"],
+                          [[r["scene"], r["response"], r["host_per_substep"], r["numpy_per_substep"],
+                            "-" if r["ccd_rounds_per_substep"] is None else r["ccd_rounds_per_substep"],
+                            "-" if r["host_per_ccd_round"] is None else r["host_per_ccd_round"],
+                            r["host_tested_rounds"] if r["ccd_rounds_per_substep"] else "-"] for r in rows])
     report.write(args.out, "Host reads per substep", lines, {"steps": args.steps, "rows": rows})
     return rows
 

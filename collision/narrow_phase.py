@@ -11,6 +11,7 @@ from collision.ccd import ONES3, as_float32, ccd_kernels, is_float32
 from core.buffers import RecordedLaunches, grown_capacity, host, read_only, upload, zero
 from core.device import init_warp
 from kernels import ccd as _k
+from kernels.broad_phase import cover_check_kernel
 from kernels import variants as _variants
 from kernels.decide import pair_proximity_kernel
 
@@ -50,6 +51,8 @@ class CandidateNarrowPhase:
             decide contacts, off any tape. With ``"float32"`` the positions of each :meth:`ccd`
             are rounded to float32 on the host and the whole narrow phase and its root solver
             run in float32; :meth:`near` (the proximity test) stays float64.
+        counter: a one-element int32 device array (a view into a caller's counts, so that
+            they cross to the host together) that counts the hits; default its own.
     """
 
     COVER_SAFETY = 0.45
@@ -58,7 +61,7 @@ class CandidateNarrowPhase:
     float32 boxes for its own rounding only)."""
 
     def __init__(self, broad_phase, *, precision: str = "float64", tolerance_scale: float = 1.0,
-                 max_iterations=None, tolerance=None) -> None:
+                 max_iterations=None, tolerance=None, counter: wp.array | None = None) -> None:
         init_warp()
         self.settings = _variants.check_settings(precision, max_iterations, tolerance, tolerance_scale)
         self._kernels = ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
@@ -74,7 +77,7 @@ class CandidateNarrowPhase:
                                dtype=wp.vec3i, device=dev)
         self._edges = wp.array(np.ascontiguousarray(broad_phase.edges, dtype=np.int32).reshape(-1, 2),
                                dtype=wp.vec2i, device=dev)
-        self._counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._counter = wp.zeros(1, dtype=wp.int32, device=dev) if counter is None else counter
         self._pairs = wp.empty(0, dtype=wp.vec2i, device=dev)
         self._kind = wp.empty(0, dtype=wp.int32, device=dev)
         self._time = wp.empty(0, dtype=self._real, device=dev)
@@ -93,6 +96,9 @@ class CandidateNarrowPhase:
         self._reach_pairs = [wp.empty(0, dtype=wp.vec2i, device=dev) for _ in range(2)]
         self._reach_counter = wp.zeros(2, dtype=wp.int32, device=dev)
         self._radius = wp.empty(n, dtype=wp.float64, device=dev)
+        # the cover's boxes of the covered motion on the device (ccd_count_device's test)
+        self._cover_lo = wp.empty(n, dtype=wp.vec3d, device=dev)
+        self._cover_hi = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._no_radius = wp.empty(0, dtype=wp.float64, device=dev)
         self._reach = None  # (cover, positions, radii, buffers) of the last near() with motion radii
         self._x0_holds_reach = False  # whether the start buffer still holds those positions
@@ -130,9 +136,11 @@ class CandidateNarrowPhase:
             x1 = x1 + np.clip(float(ahead) * (x1 - x0), -float(ahead_limit), float(ahead_limit))
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
         self.queries += 1
-        # the covered motion's vertex boxes (and scratch for _outside)
-        self._cover = (buffers, np.minimum(x0, x1), np.maximum(x0, x1), float(margin), self.broad_phase.query_count,
-                       np.empty((3,) + x0.shape))
+        # the covered motion's vertex boxes (and scratch for _outside), on the device too
+        lo, hi = np.minimum(x0, x1), np.maximum(x0, x1)
+        upload(self._cover_lo, lo)
+        upload(self._cover_hi, hi)
+        self._cover = (buffers, lo, hi, float(margin), self.broad_phase.query_count, np.empty((3,) + x0.shape))
 
     def covered_candidates(self) -> int:
         """Candidate pairs of the current cover (0 without one)."""
@@ -189,16 +197,17 @@ class CandidateNarrowPhase:
             self._weights = wp.empty(n, dtype=wp.vec4d, device=dev)
             self._vertices = wp.empty(n, dtype=wp.vec4i, device=dev)
 
-    def _run(self, buffers, launch) -> int:
+    def _run(self, buffers, launch, read: bool = True) -> int:
         """Runs ``launch(vf, n_vf, ee, n_ee)`` once for both kinds' candidates (it appends the
         hits and their kinds to the output buffers through the counter) and returns the number
-        of hits (unsorted, on the device: :attr:`hits`)."""
+        of hits (unsorted, on the device: :attr:`hits`), or with ``read=False`` the number of
+        candidates tested, a bound on it (the count stays in the device counter)."""
         vf, n_vf, ee, n_ee = buffers
         self._reserve(n_vf + n_ee)
         zero(self._counter)
         if n_vf + n_ee:
             launch(vf, n_vf, ee, n_ee)
-        return int(host(self._counter)[0])
+        return int(host(self._counter)[0]) if read else n_vf + n_ee
 
     def _sorted(self, total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(kind (K,), pair (K, 2) int64, row order (K,)) of the ``total`` hits of the last call,
@@ -240,9 +249,10 @@ class CandidateNarrowPhase:
         return (kind, pair, toi, host(self._source)[:n][order].astype(np.int64),
                 host(self._vertices)[:n][order].astype(np.int64))
 
-    def ccd_count(self, x0, x1, thickness: float = 0.0) -> int:
+    def ccd_count(self, x0, x1, thickness: float = 0.0, read: bool = True) -> int:
         """:meth:`ccd`'s hits left on the device (:attr:`hits`, the kernel's order); returns
-        their number."""
+        their number, or with ``read=False`` a bound on it without reading the device (the
+        number is in the counter)."""
         t = float(thickness)
         if not np.isfinite(t) or t < 0.0:
             raise ValueError(f"thickness must be finite and >= 0, got {thickness!r}")
@@ -274,7 +284,45 @@ class CandidateNarrowPhase:
                                    self._counter, self._pairs, self._kind, self._time, self._source,
                                    self._vertices])
 
-        return self._run(buffers, launch)
+        return self._run(buffers, launch, read)
+
+    def ccd_count_device(self, x0, x1, same_start: bool, uncovered: wp.array, beyond_reach: wp.array) -> int | None:
+        """:meth:`ccd_count` at zero thickness of the device positions ``x0``, ``x1`` (vec3d
+        arrays of at least V rows) with the cover's test on the device: the cover's candidates
+        (with ``same_start``, ``x0`` holding the positions of the last :meth:`near` with motion
+        radii, the pairs it kept) are tested without the host reading a position, and
+        :func:`kernels.broad_phase.cover_check_kernel` counts into ``uncovered`` the vertices whose
+        motion leaves the cover's room and into ``beyond_reach`` those that moved farther than
+        their radius (one-element int32 device arrays). While both stay 0 the hits are
+        :meth:`ccd_count`'s; otherwise they may lack some, and the caller runs :meth:`ccd_count`
+        instead. Returns the number of candidates tested (a bound on the hits, which are counted
+        in the counter), or None when no cover serves (no cover, another query since, or the
+        float32 narrow phase, which rounds the positions on the host)."""
+        c = self._cover
+        if self._float32 or c is None or c[4] != self.broad_phase.query_count:
+            return None
+        n = len(c[1])
+        if x0.shape[0] < n or x1.shape[0] < n:
+            raise ValueError(f"x0, x1: expected at least {n} rows (the mesh's vertices), got {x0.shape[0]}, {x1.shape[0]}")
+        r = self._reach
+        use_reach = bool(same_start) and r is not None and r[0] is c
+        zero(uncovered)
+        zero(beyond_reach)
+        self._launches.launch("cover_check", cover_check_kernel, n, [
+            x0, x1, self._cover_lo, self._cover_hi, self.COVER_SAFETY * c[3], self._radius, int(use_reach),
+            uncovered, beyond_reach])
+        buffers = r[3] if use_reach else c[0]
+        self.reuses += 1
+        self.reach_calls += use_reach
+        self.tested += buffers[1] + buffers[3]
+
+        def launch(vf, n_vf, ee, n_ee):
+            self._launches.launch("ccd", self._kernels.pair_ccd_kernel, n_vf + n_ee,
+                                  [n_vf, vf, ee, x0, x1, self._faces, self._edges, 0.0,
+                                   self._counter, self._pairs, self._kind, self._time, self._source,
+                                   self._vertices])
+
+        return self._run(buffers, launch, read=False)
 
     def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
@@ -298,9 +346,9 @@ class CandidateNarrowPhase:
         return (kind, pair, host(self._offset)[:n][order], host(self._weights)[:n][order],
                 host(self._vertices)[:n][order].astype(np.int64))
 
-    def near_count(self, x, max_distance: float, motion_radius=None) -> int:
+    def near_count(self, x, max_distance: float, motion_radius=None, read: bool = True) -> int:
         """:meth:`near`'s pairs left on the device (:attr:`hits`, the kernel's order); returns
-        their number."""
+        their number, or with ``read=False`` a bound on it (the number is in the counter)."""
         self._reach = None
         max_distance = float(max_distance)
         if not (np.isfinite(max_distance) and max_distance >= 0.0):
@@ -330,7 +378,7 @@ class CandidateNarrowPhase:
                                    self._counter, self._pairs, self._kind, self._offset, self._weights,
                                    self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
 
-        total = self._run(buffers, launch)
+        total = self._run(buffers, launch, read)
         if radius is not self._no_radius:
             self._x0_holds_reach = True  # the cover path of _candidates uploaded x there
             counts = host(self._reach_counter)

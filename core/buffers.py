@@ -25,6 +25,21 @@ def host(arr: wp.array) -> np.ndarray:
     return host_view(arr)
 
 
+PEEK = True
+"""Whether :func:`peek` reads CPU arrays (False: it never does, as on a GPU; for measuring the
+device path's host reads on a CPU)."""
+
+
+def peek(arr: wp.array) -> np.ndarray | None:
+    """The values of ``arr`` where reading them costs no synchronisation: on the CPU (launches
+    run to completion before they return) its host view, except under a graph capture, whose
+    replay would not repeat the read; None elsewhere (a GPU's copy would wait for the device),
+    so a caller then keeps the decision on the device."""
+    if PEEK and arr.device.is_cpu and not cpu_capture_active(arr.device):
+        return host_view(arr)
+    return None
+
+
 def upload(dst: wp.array, src: np.ndarray) -> wp.array:
     """Writes host data ``src`` into the first ``len(src)`` rows of ``dst`` (same dtype layout,
     e.g. (n, 3) float64 into a vec3d array) and returns ``dst``."""

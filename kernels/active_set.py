@@ -35,6 +35,7 @@ def owner_times_reset_kernel(
 
 @wp.kernel(enable_backward=False)
 def owner_times_kernel(
+    count: wp.array(dtype=wp.int32),
     vertices: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
     toi: wp.array(dtype=wp.float64),
@@ -46,8 +47,10 @@ def owner_times_kernel(
     """Earliest contact time [s] per particle (a vertex with a nonzero weight) and per body (any
     of its vertices) over the contact set's row ``tid``: the velocity switches from ``v-`` to
     ``v+`` then (a minimum: the same on every device whatever the order, for the finite times of
-    a finite state)."""
+    a finite state). Rows from ``count[0]`` on (a launch over the set's capacity) are skipped."""
     c = wp.tid()
+    if c >= count[0]:
+        return
     q = vertices[c]
     w = weights[c]
     t = toi[c]

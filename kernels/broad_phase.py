@@ -228,3 +228,39 @@ def edge_edge_pairs_kernel(
         ia = int(edge_index[a])
         ib = int(edge_index[b])
         emit(counter, pairs, wp.min(ia, ib), wp.max(ia, ib))
+
+
+@wp.kernel(enable_backward=False)
+def cover_check_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    covered_lo: wp.array(dtype=wp.vec3d),
+    covered_hi: wp.array(dtype=wp.vec3d),
+    room: f64,
+    reach_radius: wp.array(dtype=f64),
+    use_reach: int,
+    uncovered: wp.array(dtype=wp.int32),
+    beyond_reach: wp.array(dtype=wp.int32),
+):
+    """The broad-phase cover's test of vertex ``tid``'s straight motion ``x0 -> x1`` on the
+    device: ``uncovered[0]`` counts the vertices with an end farther than ``room`` (per
+    coordinate) outside the box ``covered_lo .. covered_hi`` of its covered motion (a NaN end
+    counts), and with ``use_reach`` ``beyond_reach[0]`` those whose step is longer than
+    ``reach_radius`` (:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`).
+    The comparisons are the host test's (``lo - x <= room``, ``x - hi <= room``)."""
+    i = wp.tid()
+    a = x0[i]
+    b = x1[i]
+    lo = covered_lo[i]
+    hi = covered_hi[i]
+    inside = bool(True)
+    for k in range(3):
+        if not (lo[k] - a[k] <= room and a[k] - hi[k] <= room and lo[k] - b[k] <= room and b[k] - hi[k] <= room):
+            inside = False
+    if not inside:
+        wp.atomic_add(uncovered, 0, 1)
+    if use_reach != 0:
+        step = b - a
+        r = reach_radius[i]
+        if not (wp.dot(step, step) <= r * r):
+            wp.atomic_add(beyond_reach, 0, 1)

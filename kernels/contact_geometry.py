@@ -133,6 +133,7 @@ def beside_flat_region(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, q: wp
 
 @wp.kernel
 def contact_geometry_kernel(
+    count: wp.array(dtype=wp.int32),
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
     lever: wp.array(dtype=wp.vec3d),
@@ -196,8 +197,13 @@ def contact_geometry_kernel(
       the separation's part, the push ``rate (delta - d) / h`` (proximity; beyond ``delta``:
       ``(delta - d) / h``) or ``rate delta / h`` (CCD), goes to ``pushes`` for a solve of its
       own that moves positions only (:func:`push_rhs_kernel`).
+
+    Threads from ``count[0]`` on do nothing (a launch over a bound on the rows, their count on
+    the device).
     """
     c = wp.tid()
+    if c >= count[0]:
+        return
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     q = pairs[c]

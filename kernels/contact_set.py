@@ -37,7 +37,8 @@ def infinity() -> wp.float64:
 
 @wp.kernel(enable_backward=False)
 def hit_keys_kernel(
-    mesh_count: int,
+    mesh_count: wp.array(dtype=wp.int32),
+    plane_count: wp.array(dtype=wp.int32),
     mesh_kind: wp.array(dtype=wp.int32),
     mesh_pairs: wp.array(dtype=wp.vec2i),
     mesh_offset: wp.array(dtype=wp.vec3d),
@@ -48,20 +49,23 @@ def hit_keys_kernel(
     order: wp.array(dtype=wp.int32),
     kept: wp.array(dtype=wp.int32),
 ):
-    """Sort keys of one detection pass's hits: the first ``mesh_count`` threads take the narrow
-    phase's (vertex-face / edge-edge) hits, the rest the vertex-plane ones. With
+    """Sort keys of one detection pass's hits, launched over a bound on their number (the
+    counts stay on the device): the first ``mesh_count[0]`` threads take the narrow phase's
+    (vertex-face / edge-edge) hits, the next ``plane_count[0]`` the vertex-plane ones, and the
+    rest write :data:`KEY_NONE` (so a sort of the whole launch leaves them last). With
     ``max_distance >= 0`` (the proximity pass) a mesh hit whose closest points are not nearer
     than it (``|mesh_offset| < max_distance`` fails: the narrow phase's test had a hair of
     slack) gets :data:`KEY_NONE`; ``kept[0]`` counts the others. ``order[i] = i``."""
     i = wp.tid()
-    key = wp.int64(0)
-    if i < mesh_count:
+    meshes = mesh_count[0]
+    key = KEY_NONE
+    if i < meshes:
         key = pair_key(mesh_kind[i], mesh_pairs[i], key_base)
         if max_distance >= wp.float64(0.0):
             if not (wp.length(mesh_offset[i]) < max_distance):
                 key = KEY_NONE
-    else:
-        key = pair_key(wp.int32(PAIR_VERTEX_PLANE), plane_pairs[i - mesh_count], key_base)
+    elif i < meshes + plane_count[0]:
+        key = pair_key(wp.int32(PAIR_VERTEX_PLANE), plane_pairs[i - meshes], key_base)
     keys[i] = key
     order[i] = wp.int32(i)
     if key != KEY_NONE:
@@ -88,14 +92,9 @@ def _sift_down(keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32),
             root = end  # done
 
 
-@wp.kernel(enable_backward=False)
-def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
-    """Heap sort of ``keys[0:count]`` (ascending) with their ``values``, launched with ``dim=1``:
-    on the CPU, where every launch runs its threads one after another, it costs a few
-    microseconds for the tens to hundreds of hits of a substep (Warp's radix sort has a fixed
-    cost of ~75 us there). The keys are distinct except :data:`KEY_NONE`, so the order is unique
-    up to the left-out hits."""
-    n = count
+@wp.func
+def heap_sort(keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32), n: int):
+    """Heap sort of ``keys[0:n]`` (ascending) with their ``values``, in one thread."""
     start = n / 2 - 1
     while start >= 0:
         _sift_down(keys, values, start, n)
@@ -113,10 +112,29 @@ def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.arra
 
 
 @wp.kernel(enable_backward=False)
+def sort_keys_kernel(count: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
+    """Heap sort of ``keys[0:count]`` (ascending) with their ``values``, launched with ``dim=1``:
+    on the CPU, where every launch runs its threads one after another, it costs a few
+    microseconds for the tens to hundreds of hits of a substep (Warp's radix sort has a fixed
+    cost of ~75 us there). The keys are distinct except :data:`KEY_NONE`, so the order is unique
+    up to the left-out hits."""
+    heap_sort(keys, values, count)
+
+
+@wp.kernel(enable_backward=False)
+def sort_hit_keys_kernel(mesh_count: wp.array(dtype=wp.int32), plane_count: wp.array(dtype=wp.int32),
+                         keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
+    """:func:`sort_keys_kernel` of a detection pass's ``mesh_count[0] + plane_count[0]`` keys
+    (:func:`hit_keys_kernel`'s), with the count read on the device; ``dim=1``."""
+    heap_sort(keys, values, mesh_count[0] + plane_count[0])
+
+
+@wp.kernel(enable_backward=False)
 def gather_hits_kernel(
     keys: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
-    mesh_count: int,
+    kept: wp.array(dtype=wp.int32),
+    mesh_count: wp.array(dtype=wp.int32),
     mesh_kind: wp.array(dtype=wp.int32),
     mesh_pairs: wp.array(dtype=wp.vec2i),
     mesh_vertices: wp.array(dtype=wp.vec4i),
@@ -135,7 +153,8 @@ def gather_hits_kernel(
     row: wp.array(dtype=wp.int32),
     repeated: wp.array(dtype=wp.int32),
 ):
-    """Hit ``tid`` in sorted order (``order``: :func:`sort_keys_kernel`'s values) from the narrow
+    """Hit ``tid`` (below ``kept[0]``: the kept hits, read on the device) in sorted order
+    (``order``: :func:`sort_keys_kernel`'s values) from the narrow
     phase's buffers or the vertex-plane ones: its kind, pair, vertex indices (vertex-plane: the
     vertex and three times the dummy static vertex), detected time (fraction of the substep),
     source (:func:`kernels.contact_geometry.contact_geometry_kernel`'s) and plane index (0 for mesh
@@ -148,12 +167,15 @@ def gather_hits_kernel(
     equals the previous one's (a pair twice in one pass: the contact set's growth and matching
     assume distinct pairs, so the caller refuses it)."""
     i = wp.tid()
+    if i >= kept[0]:
+        return
     j = int(order[i])
     row[i] = -1
     if i > 0:
         if keys[i] == keys[i - 1]:
             wp.atomic_add(repeated, 0, 1)
-    if j < mesh_count:
+    meshes = mesh_count[0]
+    if j < meshes:
         kind[i] = mesh_kind[j]
         pair[i] = mesh_pairs[j]
         vertices[i] = mesh_vertices[j]
@@ -170,7 +192,7 @@ def gather_hits_kernel(
                 src = TIME_DETECTED
             source[i] = src
         return
-    p = plane_pairs[j - mesh_count]
+    p = plane_pairs[j - meshes]
     kind[i] = PAIR_VERTEX_PLANE
     pair[i] = p
     vertices[i] = wp.vec4i(p[0], dummy_vertex, dummy_vertex, dummy_vertex)
@@ -179,7 +201,7 @@ def gather_hits_kernel(
         detected[i] = wp.float64(0.0)
         source[i] = TIME_START
     else:
-        detected[i] = plane_time[j - mesh_count]
+        detected[i] = plane_time[j - meshes]
         source[i] = TIME_PLANE
         if time_mode == 2:
             source[i] = TIME_DETECTED
@@ -243,33 +265,39 @@ def plane_crossing_kernel(
 
 @wp.kernel(enable_backward=False)
 def match_contacts_kernel(
+    contact_count: wp.array(dtype=wp.int32),
     contact_kind: wp.array(dtype=wp.int32),
     contact_pair: wp.array(dtype=wp.vec2i),
     key_base: wp.int64,
     hit_keys: wp.array(dtype=wp.int64),
-    hit_count: int,
+    hit_count: wp.array(dtype=wp.int32),
     row: wp.array(dtype=wp.int32),
 ):
-    """``row[h] = tid`` for the hit ``h`` whose pair is the pair of contact ``tid`` (binary search
-    in the hits' ascending ``hit_keys``; each pair is at most once in the set and once among the
-    hits, so no two threads write one entry)."""
+    """``row[h] = tid`` for the hit ``h`` whose pair is the pair of contact ``tid`` (below
+    ``contact_count[0]``; binary search in the ``hit_count[0]`` hits' ascending ``hit_keys``;
+    each pair is at most once in the set and once among the hits, so no two threads write one
+    entry). Launched over the set's capacity: both counts are read on the device."""
     c = wp.tid()
+    if c >= contact_count[0]:
+        return
     key = pair_key(contact_kind[c], contact_pair[c], key_base)
+    hits = int(hit_count[0])
     lo = int(0)
-    hi = hit_count
+    hi = hits
     while lo < hi:
         mid = (lo + hi) / 2
         if hit_keys[mid] < key:
             lo = mid + 1
         else:
             hi = mid
-    if lo < hit_count:
+    if lo < hits:
         if hit_keys[lo] == key:
             row[lo] = wp.int32(c)
 
 
 @wp.kernel(enable_backward=False)
 def approach_kernel(
+    hit_count: wp.array(dtype=wp.int32),
     x0: wp.array(dtype=wp.vec3d),
     x1: wp.array(dtype=wp.vec3d),
     lever: wp.array(dtype=wp.vec3d),
@@ -305,8 +333,10 @@ def approach_kernel(
     end of the substep, detected there again, and leaving there at ``leaving_speed`` at least
     (the replayed response's 0: an inelastic impact's normal velocity is 0, and its push has no
     time left) is judged by its velocities alone: its path ends on the contact instead of
-    passing through."""
+    passing through. Threads from ``hit_count[0]`` on (a launch over a bound) do nothing."""
     i = wp.tid()
+    if i >= hit_count[0]:
+        return
     zero = wp.float64(0.0)
     q = vertices[i]
     w = weights[i]
@@ -390,7 +420,7 @@ def rigid_only(vertices: wp.vec4i, weights: wp.vec4d, vertex_type: wp.array(dtyp
 
 @wp.kernel(enable_backward=False)
 def add_contacts_kernel(
-    hit_count: int,
+    hit_count: wp.array(dtype=wp.int32),
     all_new: int,
     approaching: wp.array(dtype=wp.int32),
     row: wp.array(dtype=wp.int32),
@@ -403,7 +433,6 @@ def add_contacts_kernel(
     normals: wp.array(dtype=wp.vec3d),
     targets: wp.array(dtype=wp.float64),
     vertex_type: wp.array(dtype=wp.int32),
-    base: int,
     record_merge: int,
     contact_kind: wp.array(dtype=wp.int32),
     contact_pair: wp.array(dtype=wp.vec2i),
@@ -421,29 +450,30 @@ def add_contacts_kernel(
     keep_toi: wp.array(dtype=wp.int32),
     keep_target: wp.array(dtype=wp.int32),
 ):
-    """Grows the contact set (``base`` rows) by the approaching hits (every hit with a normal
-    with ``all_new``: the proximity pass into the empty set, less the hits between rigid or
-    static surfaces that repeat an accepted hit's constraint, :func:`same_constraint`: their
-    targets agree to rounding, being computed from the same points), launched with ``dim=1`` so that new
-    pairs are appended in the hits' order on every device. A hit whose pair is in the set
-    (``row``) gives it its weights and normal, the earlier of the two times (ties and NaN keep
-    the old one; ``timed``, whether the replay differentiates the time, goes with it) and the
-    larger target; a new pair is appended with zero accumulated impulses. ``collided``: 1 for the
-    rows a CCD round's hit reached (``all_new == 0``), 0 for the proximity pass's. ``count[0]``:
-    the rows after the call.
+    """Grows the contact set (``count[0]`` rows) by the approaching ones of the ``hit_count[0]``
+    hits (every hit with a normal with ``all_new``: the proximity pass into the empty set, less
+    the hits between rigid or static surfaces that repeat an accepted hit's constraint,
+    :func:`same_constraint`: their targets agree to rounding, being computed from the same
+    points), launched with ``dim=1`` so that new pairs are appended in the hits' order on every
+    device. A hit whose pair is in the set (``row``) gives it its weights and normal, the
+    earlier of the two times (ties and NaN keep the old one; ``timed``, whether the replay
+    differentiates the time, goes with it) and the larger target; a new pair is appended with
+    zero accumulated impulses. ``collided``: 1 for the rows a CCD round's hit reached (``all_new
+    == 0``), 0 for the proximity pass's. ``count[0]``: the rows after the call.
 
     With ``record_merge`` the decisions the taped replay repeats
     (:func:`kernels.contact_geometry.merge_contacts_kernel`) are written per row of the grown set:
     ``merge_hit`` the hit a row takes its geometry from (-1: unchanged), ``keep_toi`` /
     ``keep_target`` whether it kept its own time / target."""
     zero = wp.float64(0.0)
+    base = int(count[0])
     n = base
     if record_merge != 0:
         for r in range(base):
             merge_hit[r] = -1
             keep_toi[r] = 0
             keep_target[r] = 0
-    for h in range(hit_count):
+    for h in range(int(hit_count[0])):
         if all_new == 0 and approaching[h] == 0:
             continue
         if all_new != 0 and wp.length_sq(normals[h]) == zero:

@@ -152,7 +152,7 @@ def _apply_body_impulse(
 
 @wp.kernel(enable_backward=False)
 def solve_contacts_kernel(
-    count: int,
+    contact_count: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
@@ -182,7 +182,8 @@ def solve_contacts_kernel(
     """Projected Gauss-Seidel over a contact set, launched with ``dim=1`` (the sweeps are
     sequential, so the result is deterministic and every impulse sees the previous ones).
 
-    Contacts ``0 .. count - 1`` are used (the arrays may be longer: reused buffers). Contact ``c`` joins vertices ``pairs[c]`` with signed weights ``weights[c]`` (side A: slot 0
+    Contacts ``0 .. count - 1`` are used, ``count = contact_count[0]`` (read on the device; the
+    arrays may be longer: reused buffers). Contact ``c`` joins vertices ``pairs[c]`` with signed weights ``weights[c]`` (side A: slot 0
     for vertex-face, slots 0-1 for edge-edge, weights summing to 1; side B the rest, summing to
     -1; ``kinds[c]``: 0 vertex-face, 1 edge-edge, 2 vertex-plane); its normal relative velocity
     ``sum_k w_k v_k . n`` must end at least ``targets[c]``.
@@ -199,6 +200,7 @@ def solve_contacts_kernel(
     once before the sweeps, so that a sweep reads no vertex type, owner, mass or inertia.
     """
     zero = wp.float64(0.0)
+    count = int(contact_count[0])
     for c in range(count):
         q = pairs[c]
         w = weights[c]

@@ -62,12 +62,15 @@ def test_a_pair_again_takes_the_new_geometry_the_earlier_time_and_the_larger_tar
           targets=[0.4, 0.2, 0.3], approaching=[1, 1, 0])
     H.keys.assign(np.concatenate([[_key(0, 3, 4), _key(0, 5, 6), _key(1, 7, 8)], np.zeros(H.keys.shape[0] - 3)]).astype(np.int64))
     H.row.fill_(-1)
-    wp.launch(match_contacts_kernel, cs.count, [cs.kind, cs.pair, KEY_BASE, H.keys, H.count, H.row], device=DEV)
+    hit_count = wp.array([H.count], dtype=wp.int32, device=DEV)
+    # over the set's capacity: the rows past its count (on the device) do nothing
+    wp.launch(match_contacts_kernel, cs.capacity, [cs.counter, cs.kind, cs.pair, KEY_BASE, H.keys, hit_count, H.row],
+              device=DEV)
     np.testing.assert_array_equal(H.host("row"), [1, -1, -1])
     merge = [wp.zeros(8, dtype=wp.int32, device=DEV) for _ in range(3)]
     wp.launch(add_contacts_kernel, 1, [
-        H.count, 0, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
-        H.targets, wp.zeros(16, dtype=wp.int32, device=DEV), cs.count, 1, cs.kind, cs.pair, cs.vertices, cs.toi,
+        hit_count, 0, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
+        H.targets, wp.zeros(16, dtype=wp.int32, device=DEV), 1, cs.kind, cs.pair, cs.vertices, cs.toi,
         cs.weights, cs.normals, cs.targets, cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse,
         cs.counter, *merge],
         device=DEV)
@@ -108,7 +111,9 @@ def test_owner_times_and_rows_prefer_differentiated_then_later_rows():
         zp, zb = arr(zone_p, wp.int32), arr([0], wp.int32)
         wp.launch(owner_times_reset_kernel, P + B, [P, zp, zb, tp, tb], device=DEV)
         wp.launch(owner_rows_reset_kernel, P + B, [P, kp, kb], device=DEV)
-        wp.launch(owner_times_kernel, C, [v_w, w_w, t_w, vertex_type, vertex_owner, tp, tb], device=DEV)
+        # over more rows than the set holds: the rows past its count (on the device) are skipped
+        wp.launch(owner_times_kernel, C + 3, [arr([C], wp.int32), v_w, w_w, t_w, vertex_type, vertex_owner, tp, tb],
+                  device=DEV)
         wp.launch(owner_rows_kernel, C, [v_w, w_w, t_w, td_w, vertex_type, vertex_owner, tp, tb, kp, kb], device=DEV)
         wp.launch(owner_rows_finish_kernel, P + B, [P, kp, kb, zp, zb, rp, rb], device=DEV)
         # reference
@@ -165,7 +170,8 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
     for k in (keys, wp.array(np.array([_key(0, 1, 2), _key(0, 3, 4), _key(0, 5, 4), _key(1, 5, 6)] * 2,
                                       dtype=np.int64), dtype=wp.int64, device=DEV)):
         repeated.zero_()
-        wp.launch(gather_hits_kernel, n, [k, order, n, mesh["kind"], mesh["pairs"], mesh["vertices"], mesh["time"],
+        counts = wp.array([n], dtype=wp.int32, device=DEV)  # kept hits and mesh hits
+        wp.launch(gather_hits_kernel, n, [k, order, counts, counts, mesh["kind"], mesh["pairs"], mesh["vertices"], mesh["time"],
                                           mesh["source"], wp.zeros(1, dtype=wp.vec2i, device=DEV),
                                           wp.zeros(1, dtype=wp.float64, device=DEV), 2, 9, H.kind, H.pair, H.vertices,
                                           H.detected, H.source, H.plane, H.row, repeated], device=DEV)
@@ -190,13 +196,15 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
     near = handler.detect.narrow.near_count
 
     def near_twice(*args, **kwargs):  # every pair the proximity test finds, reported twice
-        count = near(*args, **kwargs)
+        bound = near(*args, **kwargs)
+        counter = handler.detect.narrow._counter  # the hits' count, on the device
+        count = int(counter.numpy()[0])
         hits = handler.detect.narrow.hits
         for name in ("kind", "pairs", "offset", "weights", "vertices"):
-            a = hits[name].numpy()
-            a[count:2 * count] = a[:count]
-            hits[name].assign(a)
-        return 2 * count
+            a = np.concatenate([hits[name].numpy()[:count]] * 2)
+            hits[name].assign(np.concatenate([a, hits[name].numpy()[2 * count:]])[:hits[name].shape[0]])
+        counter.assign(np.array([2 * count], dtype=np.int32))
+        return 2 * bound
 
     handler.detect.narrow.near_count = near_twice
     with pytest.raises(RuntimeError, match="pair twice"):
@@ -221,8 +229,9 @@ def test_proximity_hits_repeating_a_rigid_constraint_join_once():
         cs.reserve(8)
         merge = [wp.zeros(8, dtype=wp.int32, device=DEV) for _ in range(3)]
         wp.launch(add_contacts_kernel, 1, [
-            H.count, 1, H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, H.toi, H.weights, H.normals,
-            H.targets, wp.array(np.full(16, vertex_type, np.int32), dtype=wp.int32, device=DEV), 0, 1, cs.kind,
+            wp.array([H.count], dtype=wp.int32, device=DEV), 1, H.approaching, H.row, H.kind, H.pair, H.vertices,
+            H.source, H.toi, H.weights, H.normals, H.targets,
+            wp.array(np.full(16, vertex_type, np.int32), dtype=wp.int32, device=DEV), 1, cs.kind,
             cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets, cs.timed, cs.collided,
             cs.normal_impulse, cs.friction_impulse, cs.counter, *merge], device=DEV)
         count = int(cs.counter.numpy()[0])

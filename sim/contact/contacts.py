@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from core.buffers import grown_capacity, host
+from core.buffers import grown_capacity, host, zero
 
 
 class ContactLimitExceeded(RuntimeError):
@@ -74,8 +74,9 @@ class Contacts(_Rows):
     differentiates it), ``collided`` (an approaching CCD hit reached the row in this substep: its
     primitives meet within the substep unless the impulses stop them), ``normal_impulse`` and
     ``friction_impulse`` (accumulated [N s]).
-    ``count`` is the host's copy of the row count (the kernel that grows the set also writes it
-    to ``counter``).
+    ``counter`` holds the row count on the device (the kernels that read or grow the set read
+    and write it there); ``count`` is the host's copy, current while ``fresh`` (a growth whose
+    count stayed on the device makes it stale until the next read).
     """
 
     FIELDS = _CONTACT_FIELDS
@@ -83,9 +84,12 @@ class Contacts(_Rows):
     def __init__(self, device, capacity: int = 64) -> None:
         super().__init__(device, capacity)
         self.counter = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.fresh = True
 
     def clear(self) -> None:
         self.count = 0
+        self.fresh = True
+        zero(self.counter)
 
     def __len__(self) -> int:
         return self.count

@@ -11,11 +11,11 @@ import warp as wp
 from collision.broad_phase import BroadPhase
 from collision.ccd import ONES3
 from collision.narrow_phase import CandidateNarrowPhase
-from core.buffers import host, zero
+from core.buffers import host, peek, zero
 from kernels.contact_geometry import contact_geometry_kernel
 from kernels.contact_set import (add_contacts_kernel, approach_kernel, gather_hits_kernel, hit_keys_kernel,
                                  match_contacts_kernel, plane_crossing_kernel, plane_proximity_kernel,
-                                 sort_keys_kernel)
+                                 sort_hit_keys_kernel)
 from kernels.pose import pose_positions_kernel, pose_substep_kernel
 from sim.contact.contacts import ContactLimitExceeded, Hits
 from sim.model import State
@@ -24,6 +24,14 @@ from sim.contact.tuning import (APPROACH_EPS, CCD_REACH_MIN_CANDIDATES, CCD_REAC
                                 COVER_SPARSE_CANDIDATES, DEVICE_SORT_MIN, END_OF_SUBSTEP, MAX_HITS_MIN,
                                 MAX_HITS_PER_VERTEX, PLANE_ROUNDING_SLACK, PROXIMITY_HYSTERESIS, SEPARATION_RATE,
                                 TOUCHING_RELATIVE)
+
+
+COUNT_SLOTS = ("mesh", "plane", "kept", "repeated", "approaching", "contacts", "uncovered", "beyond_reach")
+"""The slots of :attr:`ContactDetection.counts`: the narrow phase's hits, the vertex-plane hits,
+the hits kept in pair order, the pairs found twice, the approaching hits, the contact set's
+rows, and the vertices whose motion left the broad-phase cover's room or their reach radius
+(:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`)."""
+_MESH, _PLANE, _KEPT, _REPEATED, _APPROACHING, _CONTACTS, _UNCOVERED, _BEYOND_REACH = range(len(COUNT_SLOTS))
 
 
 class ContactDetection:
@@ -76,6 +84,14 @@ class ContactDetection:
             groups.append(np.full(len(mesh.static_vertices), len(self_collision), dtype=np.int64))
             self_collision.append(False)
             static.append(True)
+        # one pass's counts in one device array, so that a CCD round brings them to the host in
+        # one read (read_counts); each kernel gets the one-element view of its count
+        self.counts = wp.zeros(len(COUNT_SLOTS), dtype=wp.int32, device=dev)
+        (self._mesh_counter, self._plane_counter, self._kept_counter, self._repeated_counter,
+         self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach) = (
+            self.counts[i:i + 1] for i in range(len(COUNT_SLOTS)))
+        self.bound = 0  # the last sorted pass's bound on its hits (the launches' dimension)
+        self.host_tested_rounds = 0  # CCD rounds whose cover was tested on the host (statistics)
         self.broad_phase = None
         # static meshes alone (a model of spheres and walls) have nothing to collide with
         if self.n_vertices and len(faces) and (self.n_particles or mesh.shape_count):
@@ -84,7 +100,7 @@ class ContactDetection:
                 groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
                 static=np.array(static, dtype=bool), device=dev,
             )
-            self.narrow = CandidateNarrowPhase(self.broad_phase, **ccd_options)
+            self.narrow = CandidateNarrowPhase(self.broad_phase, counter=self._mesh_counter, **ccd_options)
         self.cover_scale = 0  # index into COVER_SCALES
         # the vertices the vertex-plane tests cover (movable particles and the rigid surface
         # vertices) and the planes' normals / offsets. The integrator's plane stage has already
@@ -108,8 +124,6 @@ class ContactDetection:
         self._plane_d0_w = wp.zeros(rows, dtype=wp.float64, device=dev)
         self._plane_pairs_w = wp.zeros(rows, dtype=wp.vec2i, device=dev)
         self._plane_time_w = wp.zeros(rows, dtype=wp.float64, device=dev)
-        self._plane_counter, self._kept_counter, self._approach_counter, self._repeated_counter = (
-            wp.zeros(1, dtype=wp.int32, device=dev) for _ in range(4))
         P, B = max(self.n_particles, 1), max(self.n_bodies, 1)
         # no contact time yet (inf)
         self.inf_time_p = wp.array(np.full(P, np.inf), dtype=wp.float64, device=dev)
@@ -176,40 +190,61 @@ class ContactDetection:
             elif found > COVER_DENSE_CANDIDATES:
                 self.cover_scale = max(self.cover_scale - 1, 0)
 
-    def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> int:
-        """Puts the narrow phase's ``mesh_count`` hits (:attr:`CandidateNarrowPhase.hits`) and the
-        ``plane_count`` vertex-plane ones into :attr:`hits` in ascending pair order (the
-        order of the contacts is then the same whatever the broad phase's candidate order or the
-        device's thread schedule); ``max_distance >= 0`` drops mesh pairs not nearer than it
-        (the proximity pass), ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s.
-        Returns the number of hits kept."""
+    def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0,
+                    read: bool = True) -> int | None:
+        """Puts the narrow phase's hits (:attr:`CandidateNarrowPhase.hits`) and the vertex-plane
+        ones into :attr:`hits` in ascending pair order (the order of the contacts is then the same
+        whatever the broad phase's candidate order or the device's thread schedule);
+        ``max_distance >= 0`` drops mesh pairs not nearer than it (the proximity pass),
+        ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s. ``mesh_count`` and
+        ``plane_count`` bound their hits (their numbers are in the device counters): the launches
+        run over :attr:`bound` rows and read the counts on the device. Returns the number of hits
+        kept (:meth:`read_counts`), or None with ``read=False``."""
         H, nb, launch = self.hits, self.narrow.hits, self.launches.launch
-        total = mesh_count + plane_count
-        H.reserve(total)
+        bound = self.bound = mesh_count + plane_count
+        H.reserve(bound)
         zero(self._kept_counter)
-        launch("hit_keys", hit_keys_kernel, total, [
-            mesh_count, nb["kind"], nb["pairs"], nb["offset"], float(max_distance), self._plane_pairs_w,
-            self.key_base, H.keys, H.order, self._kept_counter])
-        kept = int(host(self._kept_counter)[0])
+        zero(self._repeated_counter)
+        launch("hit_keys", hit_keys_kernel, bound, [
+            self._mesh_counter, self._plane_counter, nb["kind"], nb["pairs"], nb["offset"], float(max_distance),
+            self._plane_pairs_w, self.key_base, H.keys, H.order, self._kept_counter])
+        if self.hits.device.is_cpu or bound <= DEVICE_SORT_MIN:
+            launch("sort", sort_hit_keys_kernel, 1, [self._mesh_counter, self._plane_counter, H.keys, H.order])
+        else:  # the rows past the hits hold KEY_NONE, which sorts last
+            wp.utils.radix_sort_pairs(H.keys, H.order, bound)
+        launch("gather", gather_hits_kernel, bound, [
+            H.keys, H.order, self._kept_counter, self._mesh_counter, nb["kind"], nb["pairs"], nb["vertices"],
+            nb["time"], nb["source"], self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
+            H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
+        return self.read_counts()[_KEPT] if read else None
+
+    def _exact(self, mesh_bound: int, plane_bound: int) -> tuple[int, int]:
+        """The pass's mesh and plane hits where the counts can be peeked at without a
+        synchronisation (:func:`core.buffers.peek`: the CPU; the launches then run over the
+        hits, an empty pass launches nothing), else the bounds ``mesh_bound``, ``plane_bound``
+        (the kernels read the counts on the device)."""
+        counts = peek(self.counts)
+        if counts is None:
+            return mesh_bound, plane_bound
+        return int(counts[_MESH]), int(counts[_PLANE])
+
+    def read_counts(self) -> np.ndarray:
+        """The device counts (:data:`COUNT_SLOTS`) in one host read, kept as the hits' and the
+        contact set's counts, checked: a pair found twice in one pass, or more hits than
+        :attr:`max_hits`, raise."""
+        counts = np.array(host(self.counts))
+        if counts[_REPEATED]:
+            raise RuntimeError("collision detection returned a primitive pair twice in one pass "
+                               "(the broad phase's candidates must be distinct pairs)")
+        kept = int(counts[_KEPT])
         if kept > self.max_hits:
             raise ContactLimitExceeded(
                 f"{kept} contacts in one collision round of a substep, more than the limit of {self.max_hits} "
                 f"({MAX_HITS_PER_VERTEX} per collision vertex): the substep is far too long for the motion")
-        if self.hits.device.is_cpu or total <= DEVICE_SORT_MIN:
-            launch("sort", sort_keys_kernel, 1, [total, H.keys, H.order])
-        else:
-            wp.utils.radix_sort_pairs(H.keys, H.order, total)
-        if kept:
-            zero(self._repeated_counter)
-            launch("gather", gather_hits_kernel, kept, [
-                H.keys, H.order, mesh_count, nb["kind"], nb["pairs"], nb["vertices"], nb["time"], nb["source"],
-                self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
-                H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
-            if host(self._repeated_counter)[0]:
-                raise RuntimeError("collision detection returned a primitive pair twice in one pass "
-                                   "(the broad phase's candidates must be distinct pairs)")
-        H.count = kept
-        return kept
+        self.hits.count = kept
+        self.contacts.count = int(counts[_CONTACTS])
+        self.contacts.fresh = True
+        return counts
 
     def hit_geometry(self, x0_w, x1_w, lever_w, vm, vel, times, h: float) -> None:
         """Times [s], weights, normals and targets of :attr:`hits` on the paths ``x0_w -> x1_w``
@@ -219,38 +254,45 @@ class ContactDetection:
         H, R = self.hits, self.replay
         vc = vm if vel is None else vel
         tp, tb = times if times is not None else (self.inf_time_p, self.inf_time_b)
-        self.launches.launch("hit_geometry", contact_geometry_kernel, H.count, [
-            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
+        self.launches.launch("hit_geometry", contact_geometry_kernel, self.bound, [
+            self._kept_counter, x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, H.kind, H.source, H.detected,
             H.plane, R.planes, *self.v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, H.toi, H.weights, H.normals, H.targets,
-            self.staging.empty("hit_push", max(H.count, 1), wp.float64)])
+            self.staging.empty("hit_push", max(self.bound, 1), wp.float64)])
 
-    def add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None) -> None:
+    def add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None, read: bool = True) -> None:
         """Grows the contact set by :attr:`hits` (``all_new``: every hit, into the empty set;
         else the ``approaching`` ones, :func:`kernels.contact_set.add_contacts_kernel`) with the
         hits' geometry (``geometry``: (toi, weights, normals, targets) device arrays; default
         the hits' own) and, with ``merge`` ((hit, keep toi, keep target) int32 arrays of the
-        grown set's rows), the decisions the taped replay's merge repeats."""
+        grown set's rows), the decisions the taped replay's merge repeats. With ``read=False``
+        the set's new count stays on the device (``contacts.fresh`` is False until the next
+        :meth:`read_counts`)."""
         cs, H = self.contacts, self.hits
         toi, w, n, target = geometry[:4] if geometry is not None else (H.toi, H.weights, H.normals, H.targets)
         cs.reserve(cs.count + (H.count if all_new else approaching))
         record = merge is not None
         merge = merge if record else (self._no_merge,) * 3
         self.launches.launch("add", add_contacts_kernel, 1, [
-            H.count, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n, target,
-            self.replay.vertex_type, cs.count, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights, cs.normals, cs.targets,
-            cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse, cs.counter, *merge])
-        cs.count = int(host(cs.counter)[0])
+            self._kept_counter, int(all_new), H.approaching, H.row, H.kind, H.pair, H.vertices, H.source, toi, w, n,
+            target, self.replay.vertex_type, int(record), cs.kind, cs.pair, cs.vertices, cs.toi, cs.weights,
+            cs.normals, cs.targets, cs.timed, cs.collided, cs.normal_impulse, cs.friction_impulse, cs.counter,
+            *merge])
+        if read:
+            cs.count = int(host(cs.counter)[0])
+        else:
+            cs.fresh = False
 
-    def plane_hits(self, x_w, delta: float | None) -> int:
+    def plane_hits(self, x_w, delta: float | None, read: bool = True) -> int:
         """Vertex-plane hits into the plane buffers: with ``delta``, the proximity pairs at the
         start positions ``x_w`` (which also keeps their plane distances); else the crossings of
-        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number."""
+        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number
+        (in the device counter), or with ``read=False`` a bound on it."""
         n = len(self.plane_vertex_ids)
+        zero(self._plane_counter)
         if not (n and len(self.planes)):
             return 0
-        zero(self._plane_counter)
         if delta is not None:
             self.launches.launch("plane_proximity", plane_proximity_kernel, n, [
                 x_w, self._plane_ids_w, self._plane_threshold_w, self.replay.planes, len(self.planes), float(delta),
@@ -259,7 +301,7 @@ class ContactDetection:
             self.launches.launch("plane_crossing", plane_crossing_kernel, n, [
                 x_w, self._plane_ids_w, self.replay.planes, len(self.planes), self._plane_d0_w,
                 self._plane_counter, self._plane_pairs_w, self._plane_time_w])
-        return int(host(self._plane_counter)[0])
+        return int(host(self._plane_counter)[0]) if read else n * len(self.planes)
 
     def proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
         """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
@@ -274,16 +316,18 @@ class ContactDetection:
         The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
         ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
         3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns the
-        number of contacts."""
-        if not self.proximity_hits(x0, x1_pred, x0_w, delta):
+        number of contacts (the pass's counts come to the host in one read)."""
+        if not self.proximity_hits(x0, x1_pred, x0_w, delta, read=False):
             return 0
         self.hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
-        self.add_hits(True, 0)
-        return self.contacts.count
+        self.hits.count = self.bound  # a bound on the rows the set grows by (the set is empty)
+        self.add_hits(True, 0, read=False)
+        return int(self.read_counts()[_CONTACTS])
 
-    def proximity_hits(self, x0, x1_pred, x0_w, delta: float) -> int:
+    def proximity_hits(self, x0, x1_pred, x0_w, delta: float, read: bool = True) -> int:
         """:meth:`proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
-        delta`` at the start into :attr:`hits` (sorted); returns their number."""
+        delta`` at the start into :attr:`hits` (sorted); returns their number, or with
+        ``read=False`` a bound on it (0: none)."""
         n = self.n_vertices
         radius = None
         if self.narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
@@ -292,52 +336,111 @@ class ContactDetection:
             if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
                 radius = None
         reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
-        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius)  # slack: the exact test follows
-        planes = self.plane_hits(x0_w, delta)
-        return self.sorted_hits(mesh, planes, 0, reach) if mesh + planes else 0
+        # slack: the exact test follows
+        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius, read=read)
+        planes = self.plane_hits(x0_w, delta, read=read)
+        if not read:
+            mesh, planes = self._exact(mesh, planes)
+        if not mesh + planes:
+            return 0
+        kept = self.sorted_hits(mesh, planes, 0, reach, read=read)
+        return kept if read else self.bound
 
-    def ccd_round(self, x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
-        """One CCD round of the straight paths ``x0 -> x1`` (V + 1, 3) (device arrays ``x0_w``,
-        ``x1_w``; :meth:`ccd_hits`), the hits' geometry at their detected times and whether they
-        approach (:meth:`approach`). Returns the number of approaching hits."""
-        if not self.ccd_hits(x0, x1, x1_w, 2):
+    def ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
+        """One CCD round of the straight paths from the start positions ``x0`` (V + 1, 3) on the
+        host (device array ``x0_w``, the positions of this substep's :meth:`proximity`) to the
+        device positions ``x1_w``: the hits (:meth:`ccd_hits`), their geometry at their detected
+        times and whether they approach (:meth:`approach`), with the counts kept on the device
+        until one read at the end (:meth:`read_counts`). The broad-phase cover is tested on the
+        device too: a round whose vertices moved farther than the proximity pass's reach radii
+        runs again over the cover's candidates (a second read), and the rare round whose motion
+        left the cover runs again with the host's test (a fresh broad-phase query). Returns the
+        number of approaching hits."""
+        for same_start in (True, False):
+            mesh = self.narrow.ccd_count_device(x0_w, x1_w, same_start, self._uncovered, self._beyond_reach)
+            if mesh is None:  # no cover to test on the device
+                return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+            planes = self.plane_hits(x1_w, None, read=False)
+            peeked = peek(self.counts)
+            if peeked is not None:
+                if peeked[_UNCOVERED]:
+                    return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                if peeked[_BEYOND_REACH]:
+                    continue
+                mesh, planes = int(peeked[_MESH]), int(peeked[_PLANE])
+                if not mesh + planes:
+                    return 0
+            if mesh + planes:
+                self.sort_and_match(mesh, planes, 2)
+                self.hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
+                H = self.hits
+                self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h, read=False)
+            else:  # no candidate: counts of no hit, read with the cover's test
+                zero(self._kept_counter)
+                zero(self._repeated_counter)
+                zero(self._approach_counter)
+            counts = self.read_counts()
+            if counts[_UNCOVERED]:
+                break
+            if not counts[_BEYOND_REACH]:
+                return int(counts[_APPROACHING])
+        return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+
+    def _ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
+        """:meth:`ccd_round` with the cover tested on the host (the end positions read)."""
+        self.host_tested_rounds += 1
+        x1 = host(x1_w)[: self.n_vertices + 1]
+        if not self.ccd_hits(x0, x1, x1_w, 2, read=False):
             return 0
         self.hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
         H = self.hits
-        return self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h)
+        self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h, read=False)
+        return int(self.read_counts()[_APPROACHING])
 
-    def ccd_hits(self, x0, x1, x1_w, time_mode: int) -> int:
+    def ccd_hits(self, x0, x1, x1_w, time_mode: int, read: bool = True) -> int:
         """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
         vertex-face, edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a
         movable vertex ends behind a plane, moving inwards) into :attr:`hits` in pair order
         (``time_mode``: :func:`kernels.contact_set.gather_hits_kernel`'s), each matched to its row
-        in the contact set. Returns their number."""
-        n, H, cs = self.n_vertices, self.hits, self.contacts
-        mesh = self.narrow.ccd_count(x0[:n], x1[:n], 0.0)
-        planes = self.plane_hits(x1_w, None)
+        in the contact set. Returns their number, or with ``read=False`` a bound on it (0: none;
+        the counts stay on the device)."""
+        n = self.n_vertices
+        mesh = self.narrow.ccd_count(x0[:n], x1[:n], 0.0, read=read)
+        planes = self.plane_hits(x1_w, None, read=read)
+        if not read:
+            mesh, planes = self._exact(mesh, planes)
         if not mesh + planes:
             return 0
-        count = self.sorted_hits(mesh, planes, time_mode)
-        if cs.count:
-            self.launches.launch("match", match_contacts_kernel, cs.count,
-                                  [cs.kind, cs.pair, self.key_base, H.keys, count, H.row])
+        count = self.sort_and_match(mesh, planes, time_mode, read)
+        return count if read else self.bound
+
+    def sort_and_match(self, mesh: int, planes: int, time_mode: int, read: bool = False) -> int | None:
+        """:meth:`sorted_hits` of a CCD pass (``mesh``, ``planes``: bounds on its hits), each hit
+        matched to its row in the contact set (:func:`kernels.contact_set.match_contacts_kernel`,
+        over the set's capacity: its count may be on the device only). Returns the number of
+        hits with ``read``, else None."""
+        cs, H = self.contacts, self.hits
+        count = self.sorted_hits(mesh, planes, time_mode, read=read)
+        self.launches.launch("match", match_contacts_kernel, cs.capacity,
+                              [cs.counter, cs.kind, cs.pair, self.key_base, H.keys, self._kept_counter, H.row])
         return count
 
-    def approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float) -> int:
+    def approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float, read: bool = True) -> int | None:
         """Whether each of :attr:`hits` approaches (``geometry``: its (toi [s], weights, normals)
         device arrays; :func:`kernels.contact_set.approach_kernel`, into the hits'
         ``approaching``), with the velocities ``v-`` (``vm``) before each owner's contact time
-        (``times``; None: no contact yet) and ``vel`` after it. Returns how many approach."""
+        (``times``; None: no contact yet) and ``vel`` after it. Returns how many approach (None
+        with ``read=False``: the count stays on the device)."""
         H, R = self.hits, self.replay
         vc = vm if vel is None else vel
         tp, tb = times if times is not None else (self.inf_time_p, self.inf_time_b)
         zero(self._approach_counter)
-        self.launches.launch("approach", approach_kernel, H.count, [
-            x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
+        self.launches.launch("approach", approach_kernel, self.bound, [
+            self._kept_counter, x0_w, x1_w, lever_w, R.vertex_type, R.vertex_owner, H.vertices, *geometry, H.row,
             self.contacts.toi, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation_speed),
             # a contact at the very end leaves once it no longer approaches (the replay pushes
             # the separation at the position level) or, in the Gauss-Seidel response, once it
             # leaves at its separation speed
             0.0 if self.differentiable else float(self.separation_speed),
             float(APPROACH_EPS), float(END_OF_SUBSTEP), self._approach_counter, H.approaching])
-        return int(host(self._approach_counter)[0])
+        return int(host(self._approach_counter)[0]) if read else None

@@ -8,7 +8,7 @@ import itertools
 
 import warp as wp
 
-from core.buffers import copy_rows, host
+from core.buffers import copy_rows
 from core.tape import paused_tape
 from kernels.integrate import planned_substep_kernel
 from sim.contact.record import ContactRecord
@@ -63,12 +63,12 @@ class GaussSeidelSubstep:
         failsafe = False
         planned = None
         for iteration in itertools.count():
-            if cs.count or zones is not None:
+            if vel is not None:  # a contact or a zone changed the prediction
                 planned = self.plan(state_in, state_pred, vel, zone_flags, h)
-                x1, x1_w, times = planned[2], planned[3], planned[4]
+                x1_w, times = planned[2], planned[3]
             else:  # nothing changed the prediction
-                x1, x1_w, times = x1_pred, hd.detect.x1_pred_w, None
-            approaching = hd.detect.ccd_round(x0, x1, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                x1_w, times = hd.detect.x1_pred_w, None
+            approaching = hd.detect.ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
             if not approaching:
                 break
             if iteration >= hd.max_iterations:
@@ -86,13 +86,15 @@ class GaussSeidelSubstep:
                 continue
             hd.ccd_events += approaching
             vel = vel if vel is not None else hd.velocities(state_pred)
-            hd.detect.add_hits(False, approaching)
+            hd.detect.add_hits(False, approaching, read=False)  # the next round's read brings the count
             hd.gauss_seidel(vel, lever0_w, inv_inertia_w)
         if failsafe:
             hd.failsafe_count += 1
         if planned is None:  # nothing changed the prediction (no contact, no zone grew)
             return None
-        x1p_w, bq1_w, _, x1_w, _ = planned
+        if not cs.fresh:  # the last round found no candidate: its growth's count is still on the device
+            hd.detect.read_counts()
+        x1p_w, bq1_w, x1_w, _ = planned
         hd.note_contacts(ContactRecord(cs, x0_w, x1_w, h, hd.vertex_type))
         return State(
             particle_q=x1p_w if P else state_pred.particle_q,
@@ -110,9 +112,9 @@ class GaussSeidelSubstep:
         vertices' positions (:meth:`sim.contact.detect.ContactDetection.pose`).
 
         Returns:
-            (particle positions (P,), body poses (B,), vertex positions (V + 1, 3) on the host
-            (a view on the CPU), their device array, (particle times, body times) [s] device
-            arrays): the handler's buffers (the next plan overwrites them).
+            (particle positions (P,), body poses (B,), vertex positions (V + 1,), (particle
+            times, body times) [s]: device arrays, the handler's buffers (the next plan
+            overwrites them).
         """
         hd = self.handler
         empty, R, launch = hd.staging.empty, hd.replay, hd.launches.launch
@@ -132,7 +134,7 @@ class GaussSeidelSubstep:
             *particles, *bodies, float(h), R.vertex_type, R.vertex_owner, R.local, P, B, x1p, bq1, x1])
         if B:
             x1 = hd.detect.pose("planned", x1p if P else None, bq1)
-        return x1p, bq1, host(x1)[:n], x1, (tp, tb)
+        return x1p, bq1, x1, (tp, tb)
 
     def zone_motion(self, zones: "ImpactZones", state_in: State, vel):
         """Sets the velocities ``vel`` of the impact zones' members to their zone's

@@ -135,6 +135,8 @@ class ContactReplay:
         self.empty_twist = wp.zeros(1, dtype=wp.spatial_vectord, device=device)
         self.empty_pose = wp.array(np.array([[0, 0, 0, 0, 0, 0, 1.0]]), dtype=wp.transformd, device=device)
         self._no_int = wp.zeros(1, dtype=wp.int32, device=device)
+        # the row count of a launch whose dimension is the count itself (no thread to skip)
+        self.no_row_limit = wp.array([np.iinfo(np.int32).max], dtype=wp.int32, device=device)
         # stand-ins for outputs a launch has no thread for (never read: the stand-ins above are
         # inputs that taped launches read, which no launch may write afterwards)
         self._unused_vec = wp.zeros(1, dtype=wp.vec3d, device=device)
@@ -258,7 +260,7 @@ class ContactReplay:
         frozen = self.frozen
         self.launch(
             contact_geometry_kernel, dim=c,
-            inputs=[x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
+            inputs=[self.no_row_limit, x0, x1, lever, self.vertex_type, self.vertex_owner, frozen(rows["vertices"], c),
                     frozen(rows["kind"], c), frozen(rows["source"], c), frozen(rows["detected"], c),
                     frozen(rows["plane"], c), self.planes,
                     self.or_empty(v0_p, self.empty_vec), self.or_empty(v0_b, self.empty_twist),

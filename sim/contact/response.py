@@ -50,10 +50,13 @@ counters; the hits are put in pair order (the same contacts in the same order wh
 thread schedule or the candidates' order), matched to the contact set, given their geometry,
 tested for approach and added to a fixed-capacity device contact set
 (:class:`sim.contact.contacts.Contacts`) by the kernels of :mod:`kernels.contact_set`; the solve
-and the plan read that set where it is. The host sees only counts (hits, approaching hits,
-contacts, Gauss-Seidel sweeps, the active set's changes), the per-vertex positions of the
-broad-phase cover's box tests (views of the device arrays on the CPU) and, in the rare
-fail-safe, the approaching hits that join impact zones.
+and the plan read that set where it is. The counts stay on the device too, in one array
+(:attr:`sim.contact.detect.ContactDetection.counts`): the kernels launch over a bound and read
+them there, and a Gauss-Seidel CCD round, whose broad-phase cover is tested by a kernel as well,
+brings them to the host in one read (the loop's continue test; ``benchmarks/host_reads.py``
+counts the reads). The host also sees the per-vertex positions of the substep's start (the
+cover and the proximity pass), the active set's changes of the replayed response, and in the
+rare fail-safe the approaching hits that join impact zones.
 
 Two forms share the detection: with ``differentiable=False`` the one above (projected
 Gauss-Seidel impulses; it reuses its buffers, so stepping allocates no Warp array, and its cost
@@ -192,7 +195,7 @@ class ImpulseCollisionHandler(CollisionStage):
         self.staging = Staging(model.device)  # the Gauss-Seidel path's reused arrays
         self.no_time = wp.zeros(1, dtype=wp.float64, device=model.device)  # an unread time array
         self.launches = RecordedLaunches(model.device)  # and its replayed kernel launches
-        self.last_sweeps = 0
+        self._sweeps = None  # the last Gauss-Seidel solve's sweep count (device)
         self.particle_inv_mass = m.particle_inv_mass.numpy() if self.n_particles else np.zeros(0)
         # vertices an impulse can move: rigid ones and unpinned particles
         inv_mass = np.zeros(len(self.vertex_type))
@@ -357,23 +360,28 @@ class ImpulseCollisionHandler(CollisionStage):
         updates the velocities ``vel`` (device buffers) and the set's accumulated impulses in
         place. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row): the vertices'
         lever arms and the bodies' world inverse inertia tensors at the start pose."""
-        cs, staging, R, count = self.contact_set, self.staging, self.replay, self.contact_set.count
+        cs, staging, R = self.contact_set, self.staging, self.replay
+        rows = cs.capacity  # the set's count may be on the device only (a CCD round's growth)
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self.separation_speed
-        sweeps = staging.empty("sweeps", 1, wp.int32)
+        sweeps = self._sweeps = staging.empty("sweeps", 1, wp.int32)
         # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
         # never writes the shared stand-in passed for their velocities
         self.launches.launch("solve", solve_contacts_kernel, 1, [
-            count, cs.vertices, cs.weights, cs.normals, cs.targets, cs.kind, R.vertex_type, R.vertex_owner,
+            cs.counter, cs.vertices, cs.weights, cs.normals, cs.targets, cs.kind, R.vertex_type, R.vertex_owner,
             lever, 0,  # indexed by vertex
             self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
             # scratch: the contacts' constants over the sweeps
-            staging.empty("contact_mass", count, wp.float64), staging.empty("contact_particles", count, wp.vec4i),
-            staging.empty("contact_bodies", count, wp.vec2i), staging.empty("contact_body_weight", count, wp.vec2d),
-            staging.empty("contact_lever", 2 * count, wp.vec3d),
+            staging.empty("contact_mass", rows, wp.float64), staging.empty("contact_particles", rows, wp.vec4i),
+            staging.empty("contact_bodies", rows, wp.vec2i), staging.empty("contact_body_weight", rows, wp.vec2d),
+            staging.empty("contact_lever", 2 * rows, wp.vec3d),
             vel[0], vel[1], cs.normal_impulse, cs.friction_impulse, sweeps,
         ])
-        self.last_sweeps = int(host(sweeps)[0])
+
+    @property
+    def last_sweeps(self) -> int:
+        """Sweeps the last Gauss-Seidel solve ran (read from the device when asked)."""
+        return int(host(self._sweeps)[0]) if self._sweeps is not None else 0
 
 
     def owner_times(self, particle_time: wp.array, body_time: wp.array, zone_flags) -> None:
@@ -384,9 +392,9 @@ class ImpulseCollisionHandler(CollisionStage):
         cs, R, P = self.contact_set, self.replay, self.n_particles
         self.launches.launch("owner_reset", owner_times_reset_kernel, P + self.n_bodies,
                               [P, *zone_flags, particle_time, body_time])
-        if cs.count:
-            self.launches.launch("owner_times", owner_times_kernel, cs.count, [
-                cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, particle_time, body_time])
+        # over the set's capacity: its count may be on the device only
+        self.launches.launch("owner_times", owner_times_kernel, cs.capacity, [
+            cs.counter, cs.vertices, cs.weights, cs.toi, R.vertex_type, R.vertex_owner, particle_time, body_time])
 
 
     def zone_flags(self, zones: ImpactZones):
