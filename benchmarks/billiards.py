@@ -274,7 +274,7 @@ def _plot(done: dict, path: str) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--iters", type=int, default=200, help="rollouts per run at most (default 200)")
+    parser.add_argument("--iters", type=int, default=200, help="optimiser steps per run at most: N + 1 rollouts (default 200)")
     parser.add_argument("--seeds", type=int, default=20, help="seeded misses 0 .. N-1 (default 20)")
     parser.add_argument("--breaks", type=int, default=10000, help="random breaks (default 10000)")
     parser.add_argument("--rows", default="4,6,8,10,13", help="rack rows of the scale part (default 4,6,8,10,13)")

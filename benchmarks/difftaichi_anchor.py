@@ -141,7 +141,8 @@ class DiffTaichiBilliards:
 
     def optimise(self, cue_pos, cue_vel, iters: int = 200, lr: float = 0.01, tolerance: float = 0.005,
                  stop_at_zero_gradient: bool = False):
-        """Plain gradient descent (DiffTaichi's), ``iters`` rollouts at most, stopping early once
+        """Plain gradient descent (DiffTaichi's), ``iters`` steps at most (``iters + 1`` rollouts: the
+        start and each step's shot, as the billiards scene counts them), stopping early once
         the target is within ``tolerance`` [m] of the goal (and, with ``stop_at_zero_gradient``,
         at an exactly zero gradient: every later iterate would be the same). Returns a dict of
         the run."""
@@ -150,7 +151,7 @@ class DiffTaichiBilliards:
         z = np.concatenate([np.asarray(cue_pos, dtype=np.float64), np.asarray(cue_vel, dtype=np.float64)])
         losses, distances, seconds = [], [], []
         reached = zero = None
-        for it in range(iters):
+        for it in range(iters + 1):
             t0 = time.perf_counter()
             loss, grad = self.loss_and_grad(z[:2], z[2:])
             seconds.append(time.perf_counter() - t0)
@@ -161,6 +162,8 @@ class DiffTaichiBilliards:
                 break
             if stop_at_zero_gradient and not np.any(grad != 0.0):
                 zero = it
+                break
+            if it == iters:
                 break
             z = z - lr * grad
         return {"losses": losses, "distances": distances, "seconds": seconds, "reached": reached,

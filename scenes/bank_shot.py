@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import central_difference_check, GuardedAdam, parse_methods, progress, reported_iterate, run_cma
+from scenes.optim import ITERS_HELP, central_difference_check, GuardedAdam, parse_methods, progress, reported_iterate, run_cma
 from scenes.registry import int_at_least
 from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
@@ -326,7 +326,7 @@ def gradient_check(model, v, step: float = 1e-6, settings: RolloutSettings | Non
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
-                        help="Adam steps per method: N steps take N + 1 rollouts (default %(default)s)")
+                        help=ITERS_HELP + ", fewer once the target is reached (default %(default)s)")
     parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="newton",
                         help="initial velocity: Newton's (0, 5, -5) m/s, (3, 5, -5) m/s that misses the wall, or "
                              "'seeded': a miss drawn from --seed (default %(default)s)")

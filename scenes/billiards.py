@@ -19,7 +19,8 @@ passes above the rack), ``miss-away`` (velocity (-0.3, 0) m/s), ``seeded`` (``--
 position and velocity drawn at random whose straight path touches no ball, :func:`seeded_start`),
 or any shot with ``--cue-pos X Y --cue-vel VX VY``.
 
-Methods (``--methods``), at most ``--iters`` rollouts each, stopping once the target is within
+Methods (``--methods``), at most ``--iters`` optimiser steps each (the start and every step's
+shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
 ``TARGET_TOLERANCE`` (5 mm) of the goal:
 
 * **proposed**: while the target does not move, the loss of a lifted sphere event
@@ -50,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import (central_difference_check, parse_methods, plot_loss_curves, progress,
+from scenes.optim import (ITERS_HELP, central_difference_check, parse_methods, plot_loss_curves, progress,
                           reported_iterate, run_cma)
 from scenes.registry import int_at_least
 
@@ -315,8 +316,9 @@ def _make_optimizer(z, name: str, lr: float):
 
 def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
              lr: float = LEARNING_RATE, callback=None) -> dict[str, Any]:
-    """At most ``iters`` rollouts of ``method`` from ``start`` (x, y, vx, vy); see the module
-    docstring. Returns the run's figures and its history (one entry per rollout)."""
+    """At most ``iters`` optimiser steps of ``method`` from ``start`` (x, y, vx, vy), so at most
+    ``iters + 1`` rollouts (the start and each step's shot); see the module docstring. Returns
+    the run's figures and its history (one entry per rollout)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if optimizer not in OPTIMIZERS:
@@ -332,7 +334,7 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
     rate = lr
     reached = stalled = None
     t_start = time.perf_counter()
-    for it in range(iters):
+    for it in range(iters + 1):
         t0 = time.perf_counter()
         _, res, loss, hit, _pair = evaluate(model, z, method, grad=True)
         distance = target_distance(model, res)
@@ -346,7 +348,7 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
         wanted = "hit" if (hit or method == "baseline") else "miss"
         take = not (method == "proposed" and accepted is not None and not hit)
         history["accepted"].append(take)
-        if good or it == iters - 1:
+        if good or it == iters:
             history["seconds"].append(time.perf_counter() - t0)
             break
         if take:
@@ -427,6 +429,7 @@ def task_loss(model, shot) -> tuple[float, Any, bool]:
 
 
 def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
+    """CMA-ES on :func:`task_loss`, ``iters + 1`` rollouts at most (the gradient methods')."""
     history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
     best = [np.inf, 0]
     t_start = time.perf_counter()
@@ -448,7 +451,7 @@ def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
             callback(len(history["loss"]) - 1, history)
         return value, bool(hit and distance < TARGET_TOLERANCE)
 
-    run_cma(start, CMA_SIGMA, iters, evaluate_shot)
+    run_cma(start, CMA_SIGMA, iters + 1, evaluate_shot)
     n = len(history["loss"])
     reached = n - 1 if history["hit"][-1] and history["distance"][-1] < TARGET_TOLERANCE else None
     return _result(history, reached if reached is not None else best[1], reached, time.perf_counter() - t_start)
@@ -471,8 +474,7 @@ def gradient_check(model, shot, step: float = 1e-6) -> dict[str, Any]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
-                        help="rollouts per method at most, the start's included "
-                             "(default %(default)s)")
+                        help=ITERS_HELP + ", fewer once the target is reached (default %(default)s)")
     parser.add_argument("--start", choices=sorted(STARTS) + ["seeded"], default="default",
                         help="the cue's shot: DiffTaichi's, one that passes above the rack, one away from it, or "
                              "'seeded': a miss drawn from --seed (default %(default)s)")
@@ -550,7 +552,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     shot, name = start_of(args, model)
     out, curves = {}, {}
     for method in methods:
-        with progress(f"{NAME} {method}", args.iters) as callback:
+        with progress(f"{NAME} {method}", args.iters + 1) as callback:
             result = optimise(model, shot, args.iters, method, args.optimizer, callback=callback)
         h = result.pop("history")
         curves[method] = h["loss"]

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import parse_methods, progress, run_cma
+from scenes.optim import ITERS_HELP, parse_methods, progress, run_cma
 from scenes.registry import int_at_least
 from scenes.sim_common import RolloutSettings, add_rollout_arguments, rollout_settings
 
@@ -175,7 +175,8 @@ def _result(history, reached, wall_time: float) -> dict[str, Any]:
 
 
 def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None) -> dict[str, Any]:
-    """``iters`` rollouts of ``method`` ("proposed", "baseline" or "cma") from the start; returns the
+    """``iters`` optimiser steps of ``method`` ("proposed", "baseline" or "cma") from the start, so
+    ``iters + 1`` rollouts (the start and each step's result); returns the
     figures (loss cut of the best iterate, rollouts to a ``TARGET_CUT`` cut) and the history."""
     import torch
 
@@ -189,7 +190,7 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
     opt = torch.optim.Adam([{"params": [v], "lr": LEARNING_RATE}, {"params": [omega], "lr": SPIN_LEARNING_RATE}])
     reached = None
     t0 = time.perf_counter()
-    for it in range(iters):
+    for it in range(iters + 1):
         opt.zero_grad()
         u = torch.cat([v, omega])
         _, res = simulate(problem, u, unmollified=method == "baseline")
@@ -201,13 +202,14 @@ def optimise(problem: Problem, iters: int, method: str = "proposed", callback=No
         history["grad_norm"].append(float(torch.nn.utils.clip_grad_norm_([v, omega], GRADIENT_CLIP)))
         if callback is not None:
             callback(it, history)
-        if it + 1 < iters:
+        if it < iters:
             opt.step()
     return _result(history, reached, time.perf_counter() - t0)
 
 
 def _optimise_cma(problem: Problem, iters: int, callback=None) -> dict[str, Any]:
-    """CMA-ES on the drape loss's values, ``iters`` rollouts (the first: the start itself, the reference)."""
+    """CMA-ES on the drape loss's values, ``iters + 1`` rollouts, as many as the gradient methods' (the
+    first: the start itself, the reference)."""
     import torch
 
     history = _history()
@@ -227,15 +229,13 @@ def _optimise_cma(problem: Problem, iters: int, callback=None) -> dict[str, Any]
         return loss, False  # spend the whole budget, like the gradient methods
 
     evaluate(problem.u0.copy())
-    if iters > 1:
-        run_cma(problem.u0, CMA_SIGMA, iters - 1, evaluate)
+    run_cma(problem.u0, CMA_SIGMA, iters, evaluate)
     return _result(history, reached[0], time.perf_counter() - t0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=60,
-                        help="rollouts per method, the start's included: N - 1 steps "
-                             "(default %(default)s)")
+                        help=ITERS_HELP + " (default %(default)s)")
     parser.add_argument("--methods", default="proposed",
                         help=f"comma-separated subset of {','.join(METHODS)} (default %(default)s)")
     parser.add_argument("--cloth-res", type=int_at_least(2), default=CELLS,
@@ -263,7 +263,7 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
     colors = {"proposed": [40, 160, 255], "baseline": [230, 80, 60], "cma": [120, 200, 90]}
     out = {}
     for method in methods:
-        with progress(f"{NAME} {method}", args.iters) as callback:
+        with progress(f"{NAME} {method}", args.iters + 1) as callback:
             result = optimise(problem, args.iters, method, callback=callback)
         h = result.pop("history")
         log.log_scalars(f"/metrics/loss/{method}", np.asarray(h["loss"]),

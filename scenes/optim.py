@@ -85,6 +85,11 @@ def reported_iterate(accepted_flags: list[bool], reached, guarded: bool) -> int:
     return last
 
 
+ITERS_HELP = "optimiser steps per method; the start and each step's result are rolled out: N + 1 rollouts"
+"""The one meaning of ``--iters`` in every optimisation scene (the paper scenes' too): ``N``
+optimiser steps, ``N + 1`` evaluated iterates; CMA-ES gets the same rollout budget."""
+
+
 def run_cma(x0, sigma: float, budget: int, evaluate) -> None:
     """CMA-ES (the ``cma`` package, seed 1) from ``x0`` with initial step ``sigma``: asks for
     candidates and calls ``evaluate(x) -> (value, reached)`` on each (one rollout, recorded by the

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import GuardedAdam, progress, reported_iterate, run_cma
+from scenes.optim import ITERS_HELP, GuardedAdam, progress, reported_iterate, run_cma
 from collision.roots import DEFAULT_MAX_DERIVATIVE
 from scenes.registry import add_max_derivative_argument, int_at_least
 
@@ -531,7 +531,7 @@ def _result(history, last: int, reached, stalled: bool, rollouts: int, wall_time
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int_at_least(1), default=200,
-                        help="Adam steps per method: N steps take N + 1 rollouts (default %(default)s)")
+                        help=ITERS_HELP + " (two per iterate while lifted; default %(default)s)")
     add_max_derivative_argument(parser, DEFAULT_MAX_DERIVATIVE, "; the baseline is unmollified")
 
 

@@ -71,7 +71,7 @@ def test_cli_from_a_miss(tmp_path):
     assert base["zero_gradient_at"] == 0 and not base["reached_target"] and base["rollouts"] == 1
     assert abs(base["final_loss"] - 0.066089) < 1e-12
     assert abs(base["target_distance"] - np.hypot(0.22, 0.133)) < 1e-12
-    assert proposed["rollouts"] == 4
+    assert proposed["rollouts"] == 5  # --iters 4: four steps, the start and every step's shot played
     assert set(proposed) >= {"reached_target", "final_loss", "iterations_to_target", "target_distance"}
     assert out.exists() and out.stat().st_size > 0
     assert (tmp_path / "l.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -82,8 +82,8 @@ def test_cli_writes_a_recording_and_reports_each_method(tmp_path):
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert set(summary["methods"]) == {"proposed", "cma"}
     assert (summary["substeps"], summary["max_derivative"], summary["ccd_options"]) == (6, 100.0, {})
-    for figures in summary["methods"].values():
-        assert figures["rollouts"] == 2 and np.isfinite(figures["final_loss"])
+    for figures in summary["methods"].values():  # --iters 2: two steps, the start and both results rolled out
+        assert figures["rollouts"] == 3 and np.isfinite(figures["final_loss"])
     assert out.stat().st_size > 0
 
 
