@@ -12,6 +12,7 @@ from kernels.pose import (
     PAIR_EDGE_EDGE,
     PAIR_VERTEX_FACE,
     PAIR_VERTEX_PLANE,
+    VERTEX_STATIC,
     TIME_PLANE,
     TIME_START,
     VERTEX_BODY,
@@ -131,6 +132,23 @@ def beside_flat_region(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, q: wp
     return inside
 
 
+@wp.func
+def vertex_gravity(v: int, vertex_type: wp.array(dtype=wp.int32), vertex_owner: wp.array(dtype=wp.int32),
+                   particle_inv_mass: wp.array(dtype=wp.float64), body_inv_mass: wp.array(dtype=wp.float64),
+                   gravity: wp.vec3d) -> wp.vec3d:
+    """``gravity`` for a vertex that falls (an unpinned particle's, a body's with mass), else 0
+    (static vertices, pinned particles)."""
+    kind = vertex_type[v]
+    falls = bool(False)
+    if kind == VERTEX_PARTICLE:
+        falls = particle_inv_mass[vertex_owner[v]] > wp.float64(0.0)
+    elif kind == VERTEX_BODY:
+        falls = body_inv_mass[vertex_owner[v]] > wp.float64(0.0)
+    if falls:
+        return gravity
+    return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
 @wp.kernel
 def contact_geometry_kernel(
     count: wp.array(dtype=wp.int32),
@@ -164,6 +182,9 @@ def contact_geometry_kernel(
     flat_opposites: wp.array(dtype=wp.vec2i),
     flat_key_base: wp.int64,
     split_push: wp.int32,
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    gravity: wp.vec3d,
     toi: wp.array(dtype=wp.float64),
     weights: wp.array(dtype=wp.vec4d),
     normals: wp.array(dtype=wp.vec3d),
@@ -189,10 +210,14 @@ def contact_geometry_kernel(
       the separation speed ``rate delta / h`` (else ``rate (delta - d) / h``: resting contact;
       a pair beyond ``delta``, within the proximity pass's hysteresis, may approach at
       ``(delta - d) / h``, which brings it to ``delta`` at the end, and is not pulled); CCD
-      ``max(-e v_n, rate delta / h)``, ``v_n`` the normal velocity at ``t*``: each vertex's
-      start velocity plus the forces' change up to ``t*`` (``v_start + (t*/h)(v- - v_start)``;
-      the start velocity for proximity pairs) before its owner's earlier contact time, the
-      current velocity after it. With ``split_push`` the target is the
+      the particle-plane law (:func:`kernels.integrate.plane_rebound`) along the normal,
+      ``max(-e min(v_n + g_n / 2, 0) + c (1 - t*/h) - g_n / 2, rate delta / h)`` (``e = 0``:
+      ``max(c (1 - t*/h), rate delta / h)``), ``v_n`` the normal velocity at ``t*``: each
+      vertex's start velocity plus the forces' change up to ``t*`` (``v_start + (t*/h)(v- -
+      v_start)``; the start velocity for proximity pairs) before its owner's earlier contact
+      time, the current velocity after it; ``c = min(n.(v- - v_start), 0)`` the forces' inward
+      change over the substep and ``g_n = min(n.g h, 0)`` gravity's (``gravity`` on the
+      vertices that fall: unpinned particles, bodies with mass). With ``split_push`` the target is the
       restitution's part alone (at least 0; a pair beyond ``delta``: ``(delta - d) / h``), and
       the separation's part, the push ``rate (delta - d) / h`` (proximity; beyond ``delta``:
       ``(delta - d) / h``) or ``rate delta / h`` (CCD), goes to ``pushes`` for a solve of its
@@ -253,9 +278,13 @@ def contact_geometry_kernel(
     # so a resting contact does not bounce on the gravity of each substep
     vrel = wp.vec3d(zero, zero, zero)
     vrel_at = wp.vec3d(zero, zero, zero)
+    vforce = wp.vec3d(zero, zero, zero)  # the forces' change of the relative velocity over the substep
+    grel = wp.vec3d(zero, zero, zero)  # gravity's part of it per unit time
     for k in range(4):
         vk = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_minus, body_qd_minus)
         v0k = vertex_velocity(q[k], vertex_type, vertex_owner, lever, particle_qd_start, body_qd_start)
+        vforce = vforce + w[k] * (vk - v0k)
+        grel = grel + w[k] * vertex_gravity(q[k], vertex_type, vertex_owner, particle_inv_mass, body_inv_mass, gravity)
         at_k = v0k + frac * (vk - v0k)
         if src != TIME_START:
             if frac * h >= vertex_time(q[k], vertex_type, vertex_owner, particle_time, body_time):
@@ -337,7 +366,19 @@ def contact_geometry_kernel(
             if not bounce:
                 target = push
     else:
-        target = -restitution * vn
+        # the particle-plane law (kernels.integrate.plane_rebound) along the pair's normal: the
+        # rebound at t* of the velocity there (gravity's inward part entering over half a
+        # substep more: the stored velocity is the middle of the substep before), then the
+        # forces' inward change over the rest of the substep, the end velocity being what the
+        # solve sets. So a ball leaves a mesh floor as it leaves a ground plane, and the end
+        # state moves continuously with t* (with the rebound alone each substep boundary that
+        # t* crossed was a jump, and the slope between them missed g (h - t*) dt*/dv)
+        change_n = wp.min(wp.dot(vforce, n), zero)
+        half_gravity = wp.float64(0.5) * wp.min(wp.dot(grel, n) * h, zero)
+        after = change_n * (one - frac)
+        target = after
+        if restitution > zero:
+            target = -restitution * wp.min(vn + half_gravity, zero) + after - half_gravity
     if split_push == 0:
         target = wp.max(target, push)
     elif not beyond:

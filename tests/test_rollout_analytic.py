@@ -144,3 +144,55 @@ def test_tangential_gradient_of_a_head_on_plane_impact(friction):
     expected = steps * DT if friction == 0.0 else np.sqrt(2 * 0.3 / 9.81)  # free, or until the impact
     tol = 1e-12 if friction == 0.0 else DT / 8  # the impact's substep
     assert abs(float(v.grad[0, 0]) - expected) <= tol, (float(v.grad[0, 0]), expected)
+
+
+def _drop_height_and_gradient(floor: str, restitution: float, substeps: int = 8):
+    """A particle dropped at 1 m/s from 0.5 m above a floor under gravity: its height after
+    0.5 s and the height's derivative with respect to its initial vertical velocity. The floor
+    is a ground plane (the integrator's plane stage) or the top face of a static box (the
+    collision handler's mesh contacts)."""
+    b = ModelBuilder()
+    if floor == "plane":
+        b.add_particle((0.0, 0.0, 0.5), mass=0.1)
+        b.add_ground_plane()
+        base = 0.0
+    else:
+        b.add_particle((0.0, 0.0, 0.6), mass=0.1)
+        b.add_static_mesh(*box_mesh((0.3, 0.3, 0.1)))  # its top face at z = 0.1 m
+        base = 0.1
+    b.set_contact(restitution=restitution, friction=0.0)
+    model = b.finalize()
+    v0 = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64, requires_grad=True)
+    res = rollout(model, steps=STEPS, dt=DT, substeps=substeps, particle_qd=v0)
+    height = res.particle_q[-1, 0, 2]
+    height.backward()
+    return float(height) - base, float(v0.grad[0, 2])
+
+
+def _drop_closed_form(restitution: float, speed: float = 1.0, drop: float = 0.5, g: float = 9.81):
+    """Height above the floor after ``T`` and its derivative with respect to the initial
+    vertical velocity ``-speed`` (one bounce, the time of impact moving with the speed)."""
+    def height(u):
+        t_hit = (-u + np.sqrt(u * u + 2.0 * g * drop)) / g
+        rest = T - t_hit
+        return restitution * (u + g * t_hit) * rest - 0.5 * g * rest * rest
+
+    step = 1e-6
+    return height(speed), -(height(speed + step) - height(speed - step)) / (2.0 * step)
+
+
+@pytest.mark.parametrize("restitution", [0.5, 1.0])
+def test_a_bounce_off_a_mesh_floor_follows_the_plane_law(restitution):
+    """Mesh contacts and ground planes share one contact law (the rebound at ``t*``, then
+    gravity over the rest of the substep): the same drop bounces to the same height, with the
+    same gradient, whichever floor it lands on, and both follow the closed form (the gradient
+    to 5 %, the height to 2 mm at 8 substeps of 1/60 s: semi-implicit Euler's first-order
+    flight, 1.3 mm for ``e = 1``). Reflecting the velocity alone made the
+    height a sawtooth of the initial speed whose slope missed ``g (h - t*) dt*/dv``: the
+    gradient came out -0.157 instead of +0.028 for ``e = 0.5``."""
+    height, gradient = _drop_closed_form(restitution)
+    plane = _drop_height_and_gradient("plane", restitution)
+    mesh = _drop_height_and_gradient("mesh", restitution)
+    assert abs(mesh[0] - plane[0]) < 1e-6 and abs(mesh[1] - plane[1]) < 1e-6 * max(1.0, abs(plane[1]))
+    assert abs(mesh[0] - height) < 2e-3
+    assert abs(mesh[1] - gradient) < 0.05 * abs(gradient) + 1e-3

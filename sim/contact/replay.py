@@ -97,8 +97,10 @@ class ContactReplay:
 
     def __init__(self, vertex_type, vertex_owner, local, particle_inv_mass, body_inv_mass, body_inv_inertia,
                  planes, friction: float, restitution: float, device, flat_edges=None,
-                 flat_opposites=None):
+                 flat_opposites=None, gravity=(0.0, 0.0, 0.0)):
         self.device = device
+        # the constant force per unit mass [m/s^2] of the contacts' plane law (contact_geometry_kernel)
+        self.gravity = wp.vec3d(*(float(g) for g in np.asarray(gravity, dtype=np.float64).reshape(3)))
         self.n_vertices = len(vertex_type)
         # the flat edges (sim.collision_mesh.flat_edges) as sorted keys lo * base + hi, for the
         # contact geometry's look-up (one key that matches no edge when there are none)
@@ -269,7 +271,7 @@ class ContactReplay:
                     particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
                     wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys, self.flat_opposites,
-                    wp.int64(self.flat_key_base), 1],
+                    wp.int64(self.flat_key_base), 1, self.particle_inv_mass, self.body_inv_mass, self.gravity],
             outputs=[toi, w, n, target, push], device=self.device,
         )
         return toi, w, n, target, push

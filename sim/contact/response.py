@@ -219,7 +219,7 @@ class ImpulseCollisionHandler(CollisionStage):
             m.particle_inv_mass if self.n_particles else None,
             m.body_inv_mass if self.n_bodies else None,
             m.body_inv_inertia if self.n_bodies else None,
-            self.planes, m.friction, m.restitution, m.device, mesh.flat_edges, mesh.flat_opposites,
+            self.planes, m.friction, m.restitution, m.device, mesh.flat_edges, mesh.flat_opposites, m.gravity,
         )
         # the device contact set (kernels.contact_set), and the detection stage that fills it
         dev = model.device
