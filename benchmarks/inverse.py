@@ -294,7 +294,8 @@ def cloth_toss(args) -> dict:
     profile = fresh_profile("cloth_toss")
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.jobs} worker(s)"
     lines = [
-        f"# cloth_toss: seeds 0-{args.cloth_seeds - 1}, {args.cloth_iters} rollouts per method",
+        f"# cloth_toss: seeds 0-{args.cloth_seeds - 1}, {args.cloth_iters} optimiser steps per method "
+        f"({args.cloth_iters + 1} rollouts)",
         "",
         f"Machine: {machine}; total wall time {total:.0f} s. Loss: the drape loss [m^2] (scenes/cloth_toss.py);",
         f"success: the best iterate's loss cut by {100 * C.TARGET_CUT:.0f}% from the start's (a throw that lands beside the sphere).",
@@ -386,7 +387,7 @@ def main(argv=None) -> None:
                         help="comma-separated scenes to run: tunnel, bank_shot, cloth_toss (default all)")
     parser.add_argument("--cloth-seeds", type=int, default=5, help="cloth_toss: seeds 0 .. N-1 (default %(default)s)")
     parser.add_argument("--cloth-iters", type=int, default=40,
-                        help="cloth_toss: rollouts per method (default %(default)s)")
+                        help="cloth_toss: optimiser steps per method, N + 1 rollouts (default %(default)s)")
     parser.add_argument("--bank-seeds", type=int, default=5,
                         help="bank_shot: seeded misses (--start seeded --seed 0..N-1) beside the two fixed starts (default %(default)s)")
     parser.add_argument("--bank-iters", type=int, default=300,

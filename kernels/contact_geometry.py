@@ -12,7 +12,6 @@ from kernels.pose import (
     PAIR_EDGE_EDGE,
     PAIR_VERTEX_FACE,
     PAIR_VERTEX_PLANE,
-    VERTEX_STATIC,
     TIME_PLANE,
     TIME_START,
     VERTEX_BODY,
@@ -217,7 +216,9 @@ def contact_geometry_kernel(
       v_start)``; the start velocity for proximity pairs) before its owner's earlier contact
       time, the current velocity after it; ``c = min(n.(v- - v_start), 0)`` the forces' inward
       change over the substep and ``g_n = min(n.g h, 0)`` gravity's (``gravity`` on the
-      vertices that fall: unpinned particles, bodies with mass). With ``split_push`` the target is the
+      vertices that fall: unpinned particles, bodies with mass; zero under the exact ballistic
+      update, whose stored velocity is the substep's end one). ``v_n`` is the pair's own
+      velocity at ``t*`` (the plane law's takes only the forces' inward change into it). With ``split_push`` the target is the
       restitution's part alone (at least 0; a pair beyond ``delta``: ``(delta - d) / h``), and
       the separation's part, the push ``rate (delta - d) / h`` (proximity; beyond ``delta``:
       ``(delta - d) / h``) or ``rate delta / h`` (CCD), goes to ``pushes`` for a solve of its

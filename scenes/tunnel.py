@@ -356,7 +356,7 @@ def _crosses_towards_target(problem: Problem, accepted, step: int, impact_error:
 def optimise(problem: Problem, iters: int, method: str = "proposed", callback=None,
              max_derivative: float | None = None) -> dict[str, Any]:
     """Adam on the initial velocity (see the module docstring). ``method``: "proposed",
-    "baseline" or "cma" (CMA-ES on :func:`task_loss` with ``iters`` rollouts).
+    "baseline" or "cma" (CMA-ES on :func:`task_loss` with ``iters + 1`` rollouts).
     ``max_derivative``: ``M`` of the proposed method's mollified derivatives (default the
     rollout's, 1000; the baseline is unmollified whatever it is). Returns the figures of the run
     and its history (one entry per iteration)."""

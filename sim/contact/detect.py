@@ -259,7 +259,7 @@ class ContactDetection:
             H.plane, R.planes, *self.v_start, vm[0], vc[0], vm[1], vc[1], tp, tb, float(h), float(self.separation),
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, R.particle_inv_mass,
-            R.body_inv_mass, R.gravity, H.toi, H.weights, H.normals, H.targets,
+            R.body_inv_mass, R.half_substep_gravity, H.toi, H.weights, H.normals, H.targets,
             self.staging.empty("hit_push", max(self.bound, 1), wp.float64)])
 
     def add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None, read: bool = True) -> None:

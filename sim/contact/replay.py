@@ -99,8 +99,12 @@ class ContactReplay:
                  planes, friction: float, restitution: float, device, flat_edges=None,
                  flat_opposites=None, gravity=(0.0, 0.0, 0.0)):
         self.device = device
-        # the constant force per unit mass [m/s^2] of the contacts' plane law (contact_geometry_kernel)
+        # the constant force per unit mass [m/s^2] whose half substep the contacts' plane law
+        # adds to the velocity at t* (contact_geometry_kernel): none under the exact ballistic
+        # update (ImpulseCollisionHandler.set_exact_gravity)
         self.gravity = wp.vec3d(*(float(g) for g in np.asarray(gravity, dtype=np.float64).reshape(3)))
+        self.no_gravity = wp.vec3d(0.0, 0.0, 0.0)
+        self.half_substep_gravity = self.gravity
         self.n_vertices = len(vertex_type)
         # the flat edges (sim.collision_mesh.flat_edges) as sorted keys lo * base + hi, for the
         # contact geometry's look-up (one key that matches no edge when there are none)
@@ -271,7 +275,8 @@ class ContactReplay:
                     particle_time, body_time, wp.float64(h), wp.float64(separation),
                     wp.float64(self.restitution), wp.float64(separation_rate), wp.float64(touching_relative),
                     wp.float64(max_derivative), int(bool(nearest_slot)), self.flat_keys, self.flat_opposites,
-                    wp.int64(self.flat_key_base), 1, self.particle_inv_mass, self.body_inv_mass, self.gravity],
+                    wp.int64(self.flat_key_base), 1, self.particle_inv_mass, self.body_inv_mass,
+                    self.half_substep_gravity],
             outputs=[toi, w, n, target, push], device=self.device,
         )
         return toi, w, n, target, push

@@ -239,6 +239,12 @@ class ImpulseCollisionHandler(CollisionStage):
         self.result = model.state()
         self.mobile_vertex_w = wp.array(self._mobile_vertex.astype(np.int32), dtype=wp.int32, device=dev)
 
+    def set_exact_gravity(self, exact: bool) -> None:
+        """The contacts' plane law takes gravity's half substep into the velocity at ``t*``
+        for semi-implicit Euler's stored velocities, not for the exact ballistic update's
+        (:func:`kernels.integrate.plane_rebound`'s rule; :class:`sim.contact.stage.CollisionStage`)."""
+        self.replay.half_substep_gravity = self.replay.no_gravity if exact else self.replay.gravity
+
     @property
     def broad_phase(self) -> BroadPhase | None:
         """The detection stage's broad phase (None when the model has no collidable surface)."""

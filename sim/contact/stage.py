@@ -31,6 +31,11 @@ class CollisionStage:
     def __call__(self, state_in, state_pred, h: float):
         raise NotImplementedError
 
+    def set_exact_gravity(self, exact: bool) -> None:
+        """Whether the integrator's stored velocities are the substep's end ones (the exact
+        ballistic update, ``exact_gravity=True``) rather than semi-implicit Euler's; the
+        integrator says so before each call (the contacts' plane law depends on it)."""
+
 
 class StageObserver(CollisionStage):
     """A collision stage that watches another one (``handler``): calls it, and passes its
@@ -49,6 +54,10 @@ class StageObserver(CollisionStage):
 
     def __call__(self, state_in, state_pred, h: float):
         return self.handler(state_in, state_pred, h)
+
+    def set_exact_gravity(self, exact: bool) -> None:
+        if isinstance(self.handler, CollisionStage):
+            self.handler.set_exact_gravity(exact)
 
     def save_stats(self):
         """The watched stage's statistics (for :meth:`restore_stats` after calls an integrator

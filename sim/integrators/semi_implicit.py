@@ -45,6 +45,7 @@ from kernels.integrate import (
     respond_plane_contacts,
 )
 from sim.contact.spheres import SphereContacts
+from sim.contact.stage import CollisionStage
 from sim.model import Model, State
 from sim.stability import DivergenceGuard, SimulationDiverged
 
@@ -98,8 +99,9 @@ class SemiImplicitIntegrator:
             free flight; True: the exact ballistic update, ``x1 = x0 + h v1 - h^2 g / 2`` (the
             springs' kick, then the exact flow of free flight under gravity: symplectic, and
             exact to rounding for ballistic motion). Plane contacts follow it (a bounce is
-            second order); the collision handler's mesh contacts keep the semi-implicit
-            time-of-impact positions (first order within a contact substep). With particle
+            second order); the collision handler's mesh contacts follow the same plane law
+            but keep the semi-implicit time-of-impact positions (first order within a contact
+            substep). With particle
             drag (``Model.particle_drag``) the flight is no longer ballistic and the update is
             first order again.
     """
@@ -281,6 +283,8 @@ class SemiImplicitIntegrator:
                                requires_grad, self.plane_separation())
             cur = out
         if handler is not None:
+            if isinstance(handler, CollisionStage):
+                handler.set_exact_gravity(self.exact_gravity)
             result = handler(s_in, cur, h)
             if result is not None:
                 cur = result
