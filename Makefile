@@ -1,4 +1,4 @@
-# The two set-up commands of the README. Both create/refresh .venv from scratch on a fresh machine.
+# The set-up targets of the README and docs/install.md. Each creates/refreshes .venv from scratch on a fresh machine.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -7,14 +7,14 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum |
 # Each pytest worker gets its own Warp kernel cache (see tests/conftest.py).
 PYTEST_ARGS ?= -n 2 --dist loadgroup
 
-.PHONY: demo test bench fuzz install clean
+.PHONY: demo test bench fuzz install docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PIP) install -c constraints.txt torch==2.13.0
-	$(PIP) install -c constraints.txt -e '.[test,bench]'
+	$(PIP) install -c constraints.txt -e '.[test,bench,docs]'
 	rm -f $(VENV)/.installed-* && touch $(STAMP)
 
 install: $(STAMP)
@@ -46,5 +46,8 @@ bench: $(STAMP)
 fuzz: $(STAMP)
 	$(PY) benchmarks/fuzz_roots.py
 
+docs: $(STAMP)
+	$(PY) -m mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) *.rrd .pytest_cache .warp_cache
+	rm -rf $(VENV) *.rrd .pytest_cache .warp_cache site

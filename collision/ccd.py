@@ -115,8 +115,8 @@ def narrow_phase(kind: int, queries: np.ndarray, thickness: float = 0.0, *, prec
         tolerance_scale: multiplier (> 0) of the coefficient and distance error bounds
             (``COEFFICIENT_ERROR_FACTOR``, ``DISTANCE_ERROR_FACTOR``): below 1 tighter (fewer
             false positives, false negatives possible), above 1 looser.
-        max_iterations, tolerance: the root solver's Newton-bisection cap and relative step
-            tolerance (None: 256 and 2 ulp of the precision).
+        max_iterations: the root solver's Newton-bisection iteration cap (None: 256).
+        tolerance: the root solver's relative step tolerance (None: 2 ulp of the precision).
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) fraction of the step, inf where no hit, source: int32
@@ -167,11 +167,19 @@ def point_triangle_ccd(p_t0, t0_t0, t1_t0, t2_t0, p_t1, t0_t1, t1_t1, t2_t1, thi
     """Does the vertex hit the triangle during the step, and when first?
 
     Args:
-        p_t0, t0_t0, t1_t0, t2_t0: vertex and triangle corners at the start [m], each (N, 3).
-        p_t1, t0_t1, t1_t1, t2_t1: the same at the end of the step [m].
+        p_t0: the vertex at the start of the step [m], (N, 3).
+        t0_t0: the triangle's first corner at the start [m], (N, 3).
+        t1_t0: its second corner at the start [m], (N, 3).
+        t2_t0: its third corner at the start [m], (N, 3).
+        p_t1: the vertex at the end of the step [m], (N, 3).
+        t0_t1: the first corner at the end [m], (N, 3).
+        t1_t1: the second corner at the end [m], (N, 3).
+        t2_t1: the third corner at the end [m], (N, 3).
         thickness: minimum separation [m] (>= 0); contact when the distance reaches it.
-        precision, tolerance_scale, max_iterations, tolerance: see :func:`narrow_phase`
-            (defaults: the float64 kernels as written).
+        precision: see :func:`narrow_phase` (default: the float64 kernels as written).
+        tolerance_scale: see :func:`narrow_phase`.
+        max_iterations: see :func:`narrow_phase`.
+        tolerance: see :func:`narrow_phase`.
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) earliest time of impact in [0, 1], ``inf`` where no hit).
@@ -191,10 +199,19 @@ def edge_edge_ccd(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1
     """Do the two edges hit during the step, and when first?
 
     Args:
-        ea0_t0, ea1_t0, eb0_t0, eb1_t0: endpoints of edges a and b at the start [m], each (N, 3).
-        ea0_t1, ea1_t1, eb0_t1, eb1_t1: the same at the end of the step [m].
+        ea0_t0: edge a's first endpoint at the start of the step [m], (N, 3).
+        ea1_t0: edge a's second endpoint at the start [m], (N, 3).
+        eb0_t0: edge b's first endpoint at the start [m], (N, 3).
+        eb1_t0: edge b's second endpoint at the start [m], (N, 3).
+        ea0_t1: edge a's first endpoint at the end of the step [m], (N, 3).
+        ea1_t1: edge a's second endpoint at the end [m], (N, 3).
+        eb0_t1: edge b's first endpoint at the end [m], (N, 3).
+        eb1_t1: edge b's second endpoint at the end [m], (N, 3).
         thickness: minimum separation [m] (>= 0).
-        precision, tolerance_scale, max_iterations, tolerance: see :func:`narrow_phase`.
+        precision: see :func:`narrow_phase`.
+        tolerance_scale: see :func:`narrow_phase`.
+        max_iterations: see :func:`narrow_phase`.
+        tolerance: see :func:`narrow_phase`.
 
     Returns:
         (hit: bool (N,), toi: float64 (N,) in [0, 1], ``inf`` where no hit).
@@ -313,8 +330,9 @@ def coplanarity_roots(x_start, x_end, max_derivative: float = DEFAULT_MAX_DERIVA
     on a complex root has a finite gradient that pulls it onto the real axis.
 
     Args:
-        x_start, x_end: torch float64 (N, 4, 3) [m]: vertex, triangle corners (vertex-face) or
-            the two edges' endpoints (edge-edge), at the start and the end of the step.
+        x_start: torch float64 (N, 4, 3) [m]: vertex and triangle corners (vertex-face) or the
+            two edges' endpoints (edge-edge) at the start of the step.
+        x_end: the same four points at the end of the step, torch float64 (N, 4, 3) [m].
         max_derivative: the robust-division bound ``M`` (> 0).
         derivative: "mollified" (the kernels' robust division) or "orthogonal" (real roots: the
             exact derivative with only its part along the merging direction clamped to ``M``,
@@ -393,7 +411,8 @@ def mesh_ccd(x0, x1, faces, edges=None, *, thickness: float = 0.0, broad_phase=N
     candidate vertex-face and edge-edge pair.
 
     Args:
-        x0, x1: (V, 3) vertex positions [m] at the start and end of the step.
+        x0: (V, 3) vertex positions [m] at the start of the step.
+        x1: (V, 3) vertex positions [m] at the end of the step.
         faces: (F, 3) triangle vertex indices.
         edges: (E, 2) edge vertex indices; derived from ``faces`` when None.
         thickness: minimum separation [m] (>= 0), also the broad phase's inflation.

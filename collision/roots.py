@@ -350,8 +350,10 @@ def quadratic_root_jacobian(
         p: ``[a, b, c]``, shape (..., 3).
         t_max: root clamp.
         max_derivative: ``M`` of the robust division.
-        precision, max_iterations, tolerance: as for :func:`solve_quadratic` (float32: computed in
-            float32, returned as float64).
+        precision: as for :func:`solve_quadratic` (float32: computed in float32, returned as
+            float64).
+        max_iterations: as for :func:`solve_quadratic`.
+        tolerance: as for :func:`solve_quadratic`.
 
     Returns:
         float64 (..., 2, 2, 3): ``[slot (t-, t+), part (Re, Im), coefficient (a, b, c)]``.
@@ -372,7 +374,9 @@ def cubic_root_jacobian(p, t_max: float = DEFAULT_T_MAX, max_derivative: float =
         p: ``[q, a, b, c]``, shape (..., 4).
         t_max: root clamp.
         max_derivative: ``M`` of the robust division.
-        precision, max_iterations, tolerance: as for :func:`solve_cubic`.
+        precision: as for :func:`solve_cubic`.
+        max_iterations: as for :func:`solve_cubic`.
+        tolerance: as for :func:`solve_cubic`.
 
     Returns:
         float64 (..., 3, 2, 4): ``[slot (t-, tM, t+), part (Re, Im), coefficient (q, a, b, c)]``.

@@ -161,7 +161,10 @@ def event_positions(model, events, particle_q, body_q):
     """World positions of each event's four vertices at its window's ends.
 
     Args:
-        particle_q, body_q: the rollout's torch trajectories (N+1, P, 3), (N+1, B, 7).
+        model: the :class:`sim.model.Model` the events refer to.
+        events: the checked :class:`Event` s.
+        particle_q: the rollout's particle trajectory, torch (N+1, P, 3).
+        body_q: the rollout's body poses, torch (N+1, B, 7).
 
     Returns:
         (x_first, x_last): torch float64 (E, 4, 3) each, differentiable w.r.t. the trajectories.
@@ -280,7 +283,8 @@ def root_loss(root, target, coefficients=None, coefficient_target=None):
     Args:
         root: torch (..., 2) (Re, Im) of the tracked root.
         target: (Re, Im) of the target (Im 0 for a real target: a collision).
-        coefficients, coefficient_target: optional regularisation of the cubic's coefficients.
+        coefficients: optional: the cubic's coefficients, regularised towards ``coefficient_target``.
+        coefficient_target: the coefficients' target (used with ``coefficients``).
     """
     import torch
 

@@ -100,8 +100,8 @@ def test_fuzz_finite_bounded(deg):
 
 # Nonzero coefficients spread over more than 2^960 cannot all be represented once scaled to a
 # common magnitude; the solver balances them by a root scaling t = 2^L u, which serves one root
-# scale, so roots at the other extreme may lose accuracy (a documented limitation: README,
-# "Root solver"). The strict backward-error bound is asserted where the spread is below that.
+# scale, so roots at the other extreme may lose accuracy (a documented limitation: docs/paper.md,
+# "The root solver"). The strict backward-error bound is asserted where the spread is below that.
 SPREAD_LIMIT = 2.0**960
 
 

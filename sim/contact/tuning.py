@@ -109,8 +109,10 @@ COVER_DENSE_CANDIDATES = 1024
 """See :data:`COVER_SCALES`."""
 
 DEVICE_SORT_MIN = 2048
-"""Off the CPU, a detection pass with more hits than this is put in order by Warp's radix sort
-(a thread per key) instead of the one-thread heap sort (:func:`kernels.contact_set.sort_keys_kernel`);
+"""Off the CPU, a detection pass whose bound on its hits (the candidates tested plus the
+vertex-plane rows: the count itself stays on the device) is above this is put in order by Warp's
+radix sort (a thread per key) instead of the one-thread heap sort
+(:func:`kernels.contact_set.sort_hit_keys_kernel`);
 both give the same order (distinct keys). On the CPU the heap sort is used always: its threads
 run one after another anyway, and the radix sort costs ~75 us at any size there."""
 
