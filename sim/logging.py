@@ -29,8 +29,11 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
+import signal
+import threading
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -77,6 +80,34 @@ def _remove_stale_temporaries(path: Path) -> None:
             tmp.unlink(missing_ok=True)
         except (PermissionError, OverflowError):
             pass  # alive (another user's) or not a process id: not ours to remove
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """SIGINT and SIGTERM held back while a recording is finished, so that a second Ctrl-C or a
+    TERM cannot stop the flush half way and leave a half-written file or a temporary one: their
+    handlers are swapped for one that notes the signal, and when the block ends the original
+    handlers take the noted signals (a default action is raised again). Python runs signal
+    handlers in the main thread only; elsewhere nothing is held, nor where a handler was
+    installed outside Python."""
+    held = (signal.SIGINT, signal.SIGTERM)
+    # a handler installed outside Python (getsignal: None) could not be put back: hold nothing
+    if threading.current_thread() is not threading.main_thread() or any(signal.getsignal(s) is None for s in held):
+        yield
+        return
+    noted: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: noted.append(signum)) for s in held}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(noted):
+            handler = previous[s]
+            if callable(handler):
+                handler(s, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(s)
 
 
 class RerunLogger:
@@ -145,26 +176,27 @@ class RerunLogger:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        rec = self.rec
-        flushed = False
-        try:
-            if rec is not None:
-                if exc_type is not None and self.keep_partial and not self._status_logged:
-                    self.log_text("/status", f"interrupted: {exc_type.__name__}: {exc}")
-                rec.flush()
-                rec.disconnect()
-            flushed = True
-        finally:
-            self.rec = None
-            if not flushed:
-                target = None  # an unfinished file replaces nothing
-            else:
-                target = self.path if exc_type is None else self.partial_path if self.keep_partial else None
-            if target is not None and self.tmp_path.exists():
-                os.replace(self.tmp_path, target)
-                self.written = target
-            else:
-                self.tmp_path.unlink(missing_ok=True)
+        with _interrupts_held():  # an interrupt now arrives once the file is in place
+            rec = self.rec
+            flushed = False
+            try:
+                if rec is not None:
+                    if exc_type is not None and self.keep_partial and not self._status_logged:
+                        self.log_text("/status", f"interrupted: {exc_type.__name__}: {exc}")
+                    rec.flush()
+                    rec.disconnect()
+                flushed = True
+            finally:
+                self.rec = None
+                if not flushed:
+                    target = None  # an unfinished file replaces nothing
+                else:
+                    target = self.path if exc_type is None else self.partial_path if self.keep_partial else None
+                if target is not None and self.tmp_path.exists():
+                    os.replace(self.tmp_path, target)
+                    self.written = target
+                else:
+                    self.tmp_path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ logging
     @property

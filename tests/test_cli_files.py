@@ -242,3 +242,42 @@ def test_a_scenes_loss_plot_draws_a_stopped_method_flat(tmp_path, monkeypatch):
     assert list(baseline.get_xdata()) == [0, 3] and list(baseline.get_ydata()) == [0.066, 0.066]
     assert baseline.get_linestyle() == "--" and "gradient 0" in baseline.get_label()
     assert len(proposed.get_xdata()) == 4
+
+
+def test_an_interrupt_during_the_flush_waits_until_the_file_is_in_place(tmp_path, monkeypatch):
+    """A SIGTERM that arrives while a finished run's recording is flushed is held back: the
+    recording still replaces NAME.rrd whole, no temporary file is left, and the signal's handler
+    runs once the logger has exited."""
+    from rerun.chunk import RrdReader
+
+    from sim.logging import RerunLogger
+
+    class Stopped(Exception):
+        pass
+
+    def handler(signum, frame):
+        raise Stopped
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        out = tmp_path / "run.rrd"
+        out.write_bytes(b"an earlier recording")
+        log = RerunLogger(out, application_id="t")
+        flush = None
+        with pytest.raises(Stopped):
+            with log:
+                log.log_text("/status", "done")
+                flush = log.rec.flush
+
+                def flush_and_be_terminated(*args, **kwargs):
+                    os.kill(os.getpid(), signal.SIGTERM)  # arrives in the middle of the flush
+                    time.sleep(0.05)
+                    return flush(*args, **kwargs)
+
+                monkeypatch.setattr(log.rec, "flush", flush_and_be_terminated)
+        assert log.written == out
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["run.rrd"]
+        rows = {chunk.entity_path: chunk.num_rows for chunk in RrdReader(out).stream().to_chunks()}
+        assert rows.get("/status") == 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
