@@ -7,6 +7,7 @@ import warp as wp
 
 from kernels.ccd_common import CCD_T_MAX, coplanarity_cubic, unit_scaled_cubic
 from kernels.edge_edge import segment_segment_closest
+from kernels.integrate import rebound_normal_velocity
 from kernels.point_triangle import point_triangle_closest
 from kernels.pose import (
     PAIR_EDGE_EDGE,
@@ -376,10 +377,7 @@ def contact_geometry_kernel(
         # t* crossed was a jump, and the slope between them missed g (h - t*) dt*/dv)
         change_n = wp.min(wp.dot(vforce, n), zero)
         half_gravity = wp.float64(0.5) * wp.min(wp.dot(grel, n) * h, zero)
-        after = change_n * (one - frac)
-        target = after
-        if restitution > zero:
-            target = -restitution * wp.min(vn + half_gravity, zero) + after - half_gravity
+        target = rebound_normal_velocity(vn + half_gravity, change_n * (one - frac), half_gravity, restitution)
     if split_push == 0:
         target = wp.max(target, push)
     elif not beyond:

@@ -311,6 +311,18 @@ def find_plane_contacts(
 
 
 @wp.func
+def rebound_normal_velocity(vn_at: f64, after: f64, half_gravity: f64, restitution: f64) -> f64:
+    """The plane-contact law's normal velocity [m/s] after an impact (derived in
+    :func:`respond_plane_contacts`), never into the surface: ``vn_at`` (at ``t*``, with gravity's
+    ``half_gravity``) reflected by ``restitution``, plus the forces' inward change ``after``
+    ``t*``, less ``half_gravity``. :func:`plane_rebound` and the mesh contacts share it."""
+    vn_plus = wp.max(after, f64(0.0))
+    if restitution > f64(0.0):
+        vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
+    return vn_plus
+
+
+@wp.func
 def plane_rebound(n: wp.vec3d, v_start: wp.vec3d, v: wp.vec3d, toi: wp.float64, dt: wp.float64, gravity: wp.vec3d,
                   drift: wp.vec3d, restitution: wp.float64) -> wp.float64:
     """The normal velocity [m/s] after a plane impact at ``toi`` [s] within a substep ``dt`` [s]
@@ -328,10 +340,7 @@ def plane_rebound(n: wp.vec3d, v_start: wp.vec3d, v: wp.vec3d, toi: wp.float64, 
         half_gravity = f64(0.0)
     after = change_n * (f64(1.0) - toi / dt)
     vn_at = wp.dot(n, v_start) + change_n * (toi / dt) + half_gravity
-    vn_plus = wp.max(after, f64(0.0))
-    if restitution > f64(0.0):
-        vn_plus = wp.max(-restitution * wp.min(vn_at, f64(0.0)) + after - half_gravity, f64(0.0))
-    return vn_plus
+    return rebound_normal_velocity(vn_at, after, half_gravity, restitution)
 
 
 @wp.kernel

@@ -373,9 +373,7 @@ class ContactDetection:
                     return 0
             if mesh + planes:
                 self.sort_and_match(mesh, planes, 2)
-                self.hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
-                H = self.hits
-                self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h, read=False)
+                self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h)
             else:  # no candidate: counts of no hit, read with the cover's test
                 zero(self._kept_counter)
                 zero(self._repeated_counter)
@@ -393,10 +391,15 @@ class ContactDetection:
         x1 = host(x1_w)[: self.n_vertices + 1]
         if not self.ccd_hits(x0, x1, x1_w, 2, read=False):
             return 0
+        self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h)
+        return int(self.read_counts()[_APPROACHING])
+
+    def _round_decisions(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> None:
+        """A Gauss-Seidel CCD round's sorted hits: their geometry at their detected times and
+        whether they approach, the counts left on the device."""
         self.hit_geometry(x0_w, x1_w, lever0_w, vm, vel, times, h)
         H = self.hits
         self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h, read=False)
-        return int(self.read_counts()[_APPROACHING])
 
     def ccd_hits(self, x0, x1, x1_w, time_mode: int, read: bool = True) -> int:
         """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
