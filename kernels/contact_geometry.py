@@ -348,6 +348,14 @@ def contact_geometry_kernel(
                 n = wp.vec3d(zero, zero, zero)
             if wp.dot(n, start_offset) < zero:
                 n = -n
+            if kind == PAIR_VERTEX_FACE and geo_ok and vertex_type[q[1]] == VERTEX_BODY:
+                # a rigid body's faces are wound outwards over a closed surface (the builder
+                # checks it), and just behind a face lies the body's inside: a vertex that
+                # crosses one from behind is leaving the body (the path of a vertex through a
+                # body, before its earlier hit on the way in has turned it, crosses the far
+                # side too). The outward normal makes such a hit separate, so it is never a
+                # contact; oriented by the start it would push the vertex back in
+                n = wp.normalize(geo)
     vn = wp.dot(vrel_at, n)
     target = zero
     push = separation_rate * separation / h

@@ -7,7 +7,12 @@ whose iterates are *guarded*: one that leaves the region or does not lower the l
 (back to the last accepted iterate and its gradient, half the step), an accepted one grows the
 step by ``growth`` up to the initial rate. The loss changes discontinuously where the contact
 set changes (a second contact, a neighbouring face), and a plain Adam step across such a
-boundary would never come back.
+boundary would never come back. A step after a rejection goes along the steepest descent (the
+negative gradient, normalised, of the current length) instead of Adam's direction: Adam scales
+each coordinate by its own history, so near a kink of an ill-conditioned loss (the tunnel's
+barrier at a face's edge) its direction can leave the region or raise the loss at every length,
+and the halved steps then shrink to nothing; the gradient itself lowers the loss for a step
+short enough.
 """
 
 from __future__ import annotations
@@ -56,7 +61,8 @@ class GuardedAdam:
 
     def step(self, loss, good: bool, take: bool) -> float:
         """Backward of a taken iterate (recorded as accepted in the second phase) or a return to
-        the accepted one; then the Adam step. Returns the norm of the gradient stepped along."""
+        the accepted one; then the step: Adam's after an accepted iterate, the steepest descent's
+        after a rejected one. Returns the norm of the gradient stepped along."""
         torch = self._torch
         if take:
             loss.backward()
@@ -65,10 +71,16 @@ class GuardedAdam:
                     self.lr = min(self.lr * self.growth, self.initial_lr)
                 self.accepted = (self.v.detach().clone(), float(loss.detach()), self.v.grad.detach().clone())
         else:
+            # back to the accepted iterate; half the step, along the steepest descent
             self.lr *= 0.5
+            gradient = self.accepted[2]
+            grad_norm = float(torch.linalg.norm(gradient))
             with torch.no_grad():
                 self.v.copy_(self.accepted[0])
-            self.v.grad = self.accepted[2].clone()
+                if grad_norm > 0.0:
+                    self.v.sub_((self.lr / grad_norm) * gradient)
+            self.v.grad = gradient.clone()
+            return grad_norm
         grad_norm = float(torch.linalg.norm(self.v.grad))
         for group in self.opt.param_groups:
             group["lr"] = self.lr
