@@ -202,7 +202,8 @@ def contact_geometry_kernel(
       narrow phase of another precision numbers its roots its own way); the linear
       crossing time for vertex-plane hits (source 6); otherwise the detected fraction.
     * weights and normal at ``t*`` (:func:`pair_weights`; the face / edge-edge normal oriented
-      by the start offset, or, for proximity pairs, the offset direction, the face's normal for
+      by the start offset, a rigid body's face always outwards (a hit from behind leaves the
+      body and separates), or, for proximity pairs, the offset direction, the face's normal for
       a vertex over the face or its coplanar neighbours (``flat_keys``, ``flat_opposites``); touching pairs: the face's
       outward normal, crossing edges' cross product oriented by their lever arms, else a zero
       normal, which keeps the pair out of the contact set).
@@ -353,8 +354,8 @@ def contact_geometry_kernel(
                 # checks it), and just behind a face lies the body's inside: a vertex that
                 # crosses one from behind is leaving the body (the path of a vertex through a
                 # body, before its earlier hit on the way in has turned it, crosses the far
-                # side too). The outward normal makes such a hit separate, so it is never a
-                # contact; oriented by the start it would push the vertex back in
+                # side too). The outward normal makes such a hit separate, so it does not join
+                # the contact set; oriented by the start it pushed the vertex back in
                 n = wp.normalize(geo)
     vn = wp.dot(vrel_at, n)
     target = zero

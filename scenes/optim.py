@@ -8,7 +8,7 @@ whose iterates are *guarded*: one that leaves the region or does not lower the l
 step by ``growth`` up to the initial rate. The loss changes discontinuously where the contact
 set changes (a second contact, a neighbouring face), and a plain Adam step across such a
 boundary would never come back. A step after a rejection goes along the steepest descent (the
-negative gradient, normalised, of the current length) instead of Adam's direction: Adam scales
+negative gradient, normalised, of length ``lr``) instead of Adam's direction: Adam scales
 each coordinate by its own history, so near a kink of an ill-conditioned loss (the tunnel's
 barrier at a face's edge) its direction can leave the region or raise the loss at every length,
 and the halved steps then shrink to nothing; the gradient itself lowers the loss for a step
@@ -71,7 +71,8 @@ class GuardedAdam:
                     self.lr = min(self.lr * self.growth, self.initial_lr)
                 self.accepted = (self.v.detach().clone(), float(loss.detach()), self.v.grad.detach().clone())
         else:
-            # back to the accepted iterate; half the step, along the steepest descent
+            # back to the accepted iterate with half the step; along the steepest descent (of
+            # length lr), or Adam's step where the gradient there is exactly zero
             self.lr *= 0.5
             gradient = self.accepted[2]
             grad_norm = float(torch.linalg.norm(gradient))
@@ -80,7 +81,8 @@ class GuardedAdam:
                 if grad_norm > 0.0:
                     self.v.sub_((self.lr / grad_norm) * gradient)
             self.v.grad = gradient.clone()
-            return grad_norm
+            if grad_norm > 0.0:
+                return grad_norm
         grad_norm = float(torch.linalg.norm(self.v.grad))
         for group in self.opt.param_groups:
             group["lr"] = self.lr

@@ -179,8 +179,9 @@ def test_a_rejected_step_goes_along_the_steepest_descent():
 
 
 def test_a_hit_phase_that_adam_stalled_reaches_the_target():
-    """Seed 55 (of the seeds nobody tuned on): after each rejection Adam's direction left the
-    face or raised the loss until the step vanished (time error 8.0e-3 s after 500 iterations);
-    stepping along the steepest descent after a rejection reaches the target."""
+    """Seed 55 (of the seeds nobody tuned on): with Adam's direction after each rejection, the
+    steps left the face or raised the loss until they vanished (time error 8.0e-3 s after 500
+    iterations, with the rigid faces' outward normals in place); stepping along the steepest
+    descent after a rejection reaches the target."""
     result = optimise(make_problem(55), 500, "proposed")
     assert result["reached_target"], (result["time_error"], result["velocity_error"])

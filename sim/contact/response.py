@@ -25,7 +25,8 @@ model's components decide which groups exist and which may touch (cloth with its
    vertex-face / edge-edge narrow phase of :mod:`kernels.ccd` at zero thickness (the coplanarity
    cubic and its robust roots: the exact first contact time ``t*``). Every hit whose primitives
    still approach at ``t*`` joins the contact set, with the normal at ``t*`` oriented by the
-   start offset, the target ``-e v_n`` (``v_n`` the velocity at ``t*``: the start velocity plus
+   start offset (a rigid body's face: outwards, so a vertex crossing it from behind, leaving the
+   body, separates), the target ``-e v_n`` (``v_n`` the velocity at ``t*``: the start velocity plus
    the forces' change up to ``t*``) and the separation ``SEPARATION_RATE delta`` restored as in 1.
 3. **Impulses** for the whole contact set: projected Gauss-Seidel sweeps in a Warp kernel
    (:func:`kernels.decide.solve_contacts_kernel`, sequential, deterministic), accumulated normal
