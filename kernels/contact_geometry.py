@@ -347,16 +347,16 @@ def contact_geometry_kernel(
                 # no direction is defined, and the faces' vertex-face pairs hold the contact;
                 # a zero normal never approaches, so the hit joins no contact set
                 n = wp.vec3d(zero, zero, zero)
-            if wp.dot(n, start_offset) < zero:
+            # oriented towards the vertex's side at the start, except a rigid body's face: its
+            # faces are wound outwards over a closed surface (the builder checks it), and just
+            # behind a face lies the body's inside, so a vertex that crosses one from behind is
+            # leaving the body (the path of a vertex through a body, before its earlier hit on
+            # the way in has turned it, crosses the far side too). The outward normal makes such
+            # a hit separate, so it does not join the contact set; oriented by the start it
+            # pushed the vertex back in
+            rigid_face = kind == PAIR_VERTEX_FACE and geo_ok and vertex_type[q[1]] == VERTEX_BODY
+            if not rigid_face and wp.dot(n, start_offset) < zero:
                 n = -n
-            if kind == PAIR_VERTEX_FACE and geo_ok and vertex_type[q[1]] == VERTEX_BODY:
-                # a rigid body's faces are wound outwards over a closed surface (the builder
-                # checks it), and just behind a face lies the body's inside: a vertex that
-                # crosses one from behind is leaving the body (the path of a vertex through a
-                # body, before its earlier hit on the way in has turned it, crosses the far
-                # side too). The outward normal makes such a hit separate, so it does not join
-                # the contact set; oriented by the start it pushed the vertex back in
-                n = wp.normalize(geo)
     vn = wp.dot(vrel_at, n)
     target = zero
     push = separation_rate * separation / h

@@ -75,13 +75,13 @@ class GuardedAdam:
             # length lr), or Adam's step where the gradient there is exactly zero
             self.lr *= 0.5
             gradient = self.accepted[2]
-            grad_norm = float(torch.linalg.norm(gradient))
             with torch.no_grad():
                 self.v.copy_(self.accepted[0])
-                if grad_norm > 0.0:
-                    self.v.sub_((self.lr / grad_norm) * gradient)
             self.v.grad = gradient.clone()
+            grad_norm = float(torch.linalg.norm(gradient))
             if grad_norm > 0.0:
+                with torch.no_grad():
+                    self.v.sub_((self.lr / grad_norm) * gradient)
                 return grad_norm
         grad_norm = float(torch.linalg.norm(self.v.grad))
         for group in self.opt.param_groups:
