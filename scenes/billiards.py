@@ -23,18 +23,21 @@ Methods (``--methods``), at most ``--iters`` optimiser steps each (the start and
 shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
 ``TARGET_TOLERANCE`` (5 mm) of the goal:
 
-* **proposed**: while the target does not move, the loss of a lifted sphere event
-  (:class:`sim.events.SphereEvent`) pulls a moving ball's path onto the target
-  (:func:`lifted_pair` says which ball: the one whose last straight path passes closest to it;
-  :func:`miss_loss`), and the contact's normal towards the direction that sends the target to
-  the goal (:func:`aim_loss`), optimised with Adam (:data:`MISS_LEARNING_RATE`) over the cue's
-  position, speed and heading (:func:`_to_polar`: a path that passes behind the ball turns
-  instead of only speeding up); once the target moves, the loss is the
-  squared distance, optimised with ``--optimizer`` (``gd``: DiffTaichi's plain gradient descent,
-  learning rate 0.01; ``adam``). An iterate of that phase after which the target no longer moves
-  is rejected: back to the last iterate that moved it, with half the step. An iterate that puts
-  the cue inside a rack ball is projected out of it (:func:`outside_the_rack`), for every
-  method.
+* **proposed**: until the shot is a hit, a lifted sphere event pulls the cue onto the ball that
+  the chain to the goal needs first: :func:`push_chain` follows the balls in the way of pushing
+  the target straight at the goal back to one the cue can reach (on DiffTaichi's rack, the
+  apex); :func:`lifted_event` lifts the cue and that ball over the cue's first straight path,
+  and :func:`miss_loss` pulls the path's contact onto the striking point, where the contact
+  normal sends the ball along the chain, at a time inside the run. That phase optimises the
+  cue's speed and heading with Adam (:data:`MISS_LEARNING_RATE`, :func:`scenes.optim.to_polar`),
+  its position fixed (a free position lets the optimiser park the cue against the ball). A hit (:func:`good_hit`): the target moves and the cue's first contact sends
+  the chain's head within :data:`AIM_CONE` of the chain's direction. From the first hit the
+  loss is the squared distance over all four unknowns, optimised with ``--optimizer``:
+  ``adam``: the guarded Adam of :mod:`scenes.optim` (an iterate that is not a hit or does not
+  lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`); ``gd``:
+  DiffTaichi's plain gradient descent (learning rate 0.01), an iterate that is not a hit rejected
+  the same way. An iterate that puts the cue inside a rack ball is projected out of it
+  (:func:`outside_the_rack`), for every method.
 * **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
   through the real contacts only: DiffTaichi's method. From a miss its gradient is exactly zero;
   a run stops at the first exactly zero gradient (``zero_gradient_at``), since every later
@@ -51,8 +54,8 @@ from typing import Any
 
 import numpy as np
 
-from scenes.optim import (ITERS_HELP, central_difference_check, parse_methods, plot_loss_curves, progress,
-                          reported_iterate, run_cma)
+from scenes.optim import (ITERS_HELP, central_difference_check, from_polar, parse_methods, plot_loss_curves,
+                          polar_gradient, progress, reported_iterate, run_cma, to_polar)
 from scenes.registry import int_at_least
 
 NAME = "billiards"
@@ -73,9 +76,8 @@ STARTS = {"default": (0.1, 0.5, 0.3, 0.0), "miss-above": (0.1, 0.5, 0.3, 0.1), "
 TARGET_TOLERANCE = 0.005  # [m]
 LEARNING_RATE = 0.01
 MISS_LEARNING_RATE = 0.03
-"""Adam's step in the miss phase [m, m/s; the heading in units of :data:`HEADING_SCALE` rad]:
-larger than DiffTaichi's 0.01, since a miss may have to turn the shot around (``miss-away``);
-the hit phase uses :data:`LEARNING_RATE`."""
+"""Adam's step in the miss phase [m/s; the heading in units of :data:`HEADING_SCALE` rad]: a
+miss may have to turn the shot around (``miss-away``)."""
 MISS_OFFSET = 1.0  # [m^2] CMA-ES: a shot that leaves the target still costs this plus its event loss
 CMA_SIGMA = 0.05  # CMA-ES's initial step [m, m/s]
 METHODS = ("proposed", "baseline", "cma")
@@ -189,129 +191,136 @@ def moved(res) -> np.ndarray:
     return np.any(res.body_qd[:, :, 3:].detach().numpy() != 0.0, axis=(0, 2))
 
 
-def lifted_pair(model, res):
-    """The pair the proposed method lifts while the target is still, and its window:
-    ``(ball, first_step)``. The rule: among the balls that move, the one whose straight path
-    after its last velocity change (its last contact, or the start) passes closest to the
-    target; the window runs from that step to the end, where the path is exactly straight. None
-    when no moving ball ends in motion."""
-    q = res.body_q.detach().numpy()[:, :, :2]
-    qd = res.body_qd.detach().numpy()[:, :, 3:5]
-    target = target_of(model)
-    best = None
-    for ball in np.flatnonzero(moved(res)):
-        changes = np.flatnonzero(np.any(qd[1:, ball] != qd[:-1, ball], axis=1))
-        first = int(changes[-1]) + 1 if len(changes) else 0
-        if first >= STEPS:
-            continue
-        d0 = q[first, ball] - q[first, target]
-        travel = q[-1, ball] - q[first, ball]
-        denom = float(travel @ travel)
-        if not denom > 1e-24:
-            continue
-        s = float(np.clip(-(d0 @ travel) / denom, 0.0, 1.0))
-        gap = float(np.linalg.norm(d0 + s * travel))
-        if best is None or gap < best[0]:
-            best = (gap, int(ball), first)
-    return None if best is None else best[1:]
+def push_chain(centres, target: int, goal, radius: float = RADIUS) -> tuple[int, np.ndarray]:
+    """The ball a shot must strike first to send ``target`` towards ``goal``, and the direction
+    to strike it in: ``(head, direction)`` (a body index and a unit vector (2,)).
+
+    The rule, on the balls at rest (``centres`` (B, 2) [m]): the target must be pushed straight
+    at the goal, by a ball touching it from the opposite side. If another ball overlaps that
+    striking position, it is in the way and becomes the one to push, along the line of centres
+    (a ball struck along the line of centres leaves along it); and so on until the striking
+    position is free. On DiffTaichi's rack the chain runs down the diagonal from the target to
+    the apex: the apex, struck about 33 degrees above the table's x axis."""
+    centres = np.asarray(centres, dtype=np.float64)
+    ball = int(target)
+    direction = np.asarray(goal, dtype=np.float64) - centres[ball]
+    direction = direction / np.linalg.norm(direction)
+    chain = {ball}
+    while True:
+        striker = centres[ball] - 2 * radius * direction
+        gaps = np.linalg.norm(centres - striker[None], axis=1) - 2 * radius
+        gaps[sorted(chain)] = np.inf
+        blocker = int(np.argmin(gaps))
+        if gaps[blocker] >= 0.0:
+            return ball, direction
+        direction = centres[ball] - centres[blocker]
+        direction = direction / np.linalg.norm(direction)
+        ball = blocker
+        chain.add(ball)
 
 
-MISS_TIME = 0.5
-"""Where in its window (a fraction) the miss loss puts the lifted pair's contact."""
+AIM_CONE = 45.0
+"""[deg] A shot is a hit (the proposed method's second phase) when the target moves and the
+cue's first contact sends the chain's head (:func:`push_chain`) within this angle of the
+chain's direction. DiffTaichi's own start, a straight shot at the apex, is 33 degrees off."""
+CONTACT_WINDOW = (0.1, 0.9)
+"""Where in the run (fractions of its duration) the miss loss wants the lifted contact: not at
+its very start (a cue parked against the ball) nor after its end."""
 
 
-def miss_loss(roots, duration: float):
-    """The lifted pair's loss from its roots (2, 2) [s], in window fractions: a miss (complex
-    pair) is pulled to a contact in the window's middle, eq. ``complexconjugateloss`` with the
-    target ``(MISS_TIME, 0)``; a real contact outside the window (``t-`` after its end, or
-    ``t+`` before its start: the paths cross outside the run) pulls that root to ``MISS_TIME``
-    (eq. ``loss``). The middle of the window, not its edge: a contact at the edge is one the
-    optimiser can reach by parking the ball beside the target."""
-    from sim.events import complex_conjugate_loss, root_loss
+def _chain_of(model):
+    centres = model.body_q.numpy()[:, :2]
+    return push_chain(centres, target_of(model), GOAL)
 
-    r = roots / duration
-    target = (MISS_TIME, 0.0)
-    if float(r[0, 1].detach()) != 0.0:
-        plus, minus = (0, 1) if float(r[0, 1].detach()) > 0.0 else (1, 0)
-        return complex_conjugate_loss(r[plus], r[minus], target)
-    if float(r[0, 0].detach()) > 1.0:
-        return root_loss(r[0], target)
-    if float(r[1, 0].detach()) < 0.0:
-        return root_loss(r[1], target)
-    return (r * 0.0).sum()  # a contact inside the window: the target moves, so this is not reached
+
+def _first_change(res, ball: int) -> int | None:
+    """The first step whose end velocity differs from its start's (a contact), or None."""
+    qd = res.body_qd.detach().numpy()[:, ball, 3:5]
+    changes = np.flatnonzero(np.any(qd[1:] != qd[:-1], axis=1))
+    return int(changes[0]) if len(changes) else None
+
+
+def good_hit(model, res) -> bool:
+    """Whether a rollout is in the proposed method's hit region: the target moves, and the cue's
+    first contact is with the chain's head, sent within :data:`AIM_CONE` of the chain's
+    direction (a frictionless ball at rest leaves along the contact normal)."""
+    if not moved(res)[target_of(model)]:
+        return False
+    head, direction = _chain_of(model)
+    cue_change = _first_change(res, 0)
+    qd = res.body_qd.detach().numpy()[:, head, 3:5]
+    head_moves = np.flatnonzero(np.any(qd != 0.0, axis=1))
+    if cue_change is None or not len(head_moves) or int(head_moves[0]) != cue_change + 1:
+        return False
+    v = qd[int(head_moves[0])]
+    return bool(v @ direction > np.cos(np.radians(AIM_CONE)) * np.linalg.norm(v))
+
+
+def lifted_event(model, res):
+    """The sphere event the proposed method lifts while the shot is not a hit: the cue and the
+    chain's head (:func:`push_chain`), over the cue's first straight path (from the start to
+    its first contact, or the whole run)."""
+    from sim.events import SphereEvent
+
+    head, _ = _chain_of(model)
+    change = _first_change(res, 0)
+    return SphereEvent(0, head, (0, STEPS if change is None else max(change, 1)))
+
+
+def miss_loss(model, res, event, roots):
+    """The lifted event's loss from its roots (2, 2) [s] (slots ``t-``, ``t+``; Re, Im):
+
+    * aim: at ``tau = Re t-`` (clamped to the window) the offset ``d`` of the cue from the head,
+      against the striking offset ``-2 r u`` (``u`` the chain's direction): ``|d / 2r + u|^2``.
+      For a miss (a complex pair) ``tau`` is the closest approach and ``|d|^2 = (2 r)^2 + a Im^2``,
+      so the loss pulls the path onto the ball and its contact normal onto ``u`` at once; it is 0
+      exactly for paths that enter the ball at the striking point;
+    * time: ``tau`` inside :data:`CONTACT_WINDOW` of the run (the squared excess, in run
+      durations): a shot heading away (``tau < 0``) turns towards the ball.
+    """
+    import torch
+
+    _, direction = _chain_of(model)
+    first, last = event.window
+    duration = STEPS * DT
+    tau = roots[0, 0]
+    low, high = (f * duration for f in CONTACT_WINDOW)
+    time_loss = ((low - tau).clamp(min=0.0) ** 2 + (tau - high).clamp(min=0.0) ** 2) / duration ** 2
+    q = res.body_q[:, :, :2]
+    start = q[first, 0] - q[first, event.body_b]
+    s = (tau / ((last - first) * DT)).clamp(0.0, 1.0)
+    offset = start + s * (q[last, 0] - q[last, event.body_b] - start)
+    aim = ((offset / (2 * RADIUS) + torch.as_tensor(direction, dtype=torch.float64)) ** 2).sum()
+    return aim + time_loss
 
 
 def evaluate(model, shot, method: str, grad: bool):
-    """One rollout of ``shot`` with the method's loss: (shot tensor, result, loss tensor, hit,
-    lifted pair or None). ``hit``: the target moves. While it does not (and the method is not
-    the baseline), the loss is the lifted pair's (:func:`lifted_pair`, :func:`miss_loss`): the
-    quadratic's roots from the rollout's own trajectory (:func:`sim.events.sphere_event_roots`,
-    what ``rollout(events=[SphereEvent(...)])`` returns)."""
-    from sim.events import SphereEvent, sphere_event_roots
+    """One rollout of ``shot`` with the method's loss: (shot tensor, result, loss tensor, good,
+    lifted event or None). ``good``: the shot is in the method's hit region (the baseline's:
+    the target moves; the others': :func:`good_hit`), where the loss is the squared distance.
+    Elsewhere (not the baseline) it is the lifted event's (:func:`lifted_event`,
+    :func:`miss_loss`): the quadratic's roots from the rollout's own trajectory
+    (:func:`sim.events.sphere_event_roots`, what ``rollout(events=[SphereEvent(...)])``
+    returns)."""
+    from sim.events import sphere_event_roots
 
     z, res = simulate(model, shot, grad=grad)
-    target = target_of(model)
-    hit = bool(moved(res)[target])
-    pair = None if hit or method == "baseline" else lifted_pair(model, res)
-    if pair is None:
-        return z, res, distance_loss(model, res), hit, None
-    roots = sphere_event_roots(model, [SphereEvent(pair[0], target, (pair[1], STEPS))], res.body_q, DT)
-    duration = (STEPS - pair[1]) * DT
-    return z, res, miss_loss(roots[0], duration) + aim_loss(model, res, pair, roots[0] / duration), hit, pair
-
-
-def aim_loss(model, res, pair, fractions):
-    """How far the lifted contact's normal is from sending the target to the goal: at the real
-    part of ``t-`` (a window fraction, clamped to the window) the unit vector from the moving
-    ball to the target, against the unit vector from the target to the goal (squared distance;
-    0 for a contact that pushes the target straight at the goal)."""
-    import torch
-
-    ball, first = pair
-    target = target_of(model)
-    q = res.body_q[:, :, :2]
-    s = fractions[0, 0].clamp(0.0, 1.0)
-    start = q[first, ball] - q[first, target]
-    d = start + s * (q[-1, ball] - q[-1, target] - start)
-    aim = torch.as_tensor(GOAL, dtype=torch.float64) - q[first, target].detach()
-    return ((-d / d.norm() - aim / aim.norm()) ** 2).sum()
+    good = bool(moved(res)[target_of(model)]) if method == "baseline" else good_hit(model, res)
+    if good or method == "baseline":
+        return z, res, distance_loss(model, res), good, None
+    event = lifted_event(model, res)
+    roots = sphere_event_roots(model, [event], res.body_q, DT)[0]
+    return z, res, miss_loss(model, res, event, roots), False, event
 
 
 HEADING_SCALE = 3.0
-"""Miss phase: the unit [rad] of the cue's heading among the optimiser's variables, so that
-Adam turns the cue by up to ``MISS_LEARNING_RATE * HEADING_SCALE`` rad per step."""
-
-
-def _to_polar(shot) -> np.ndarray:
-    """The miss phase's variables of a shot (x, y, vx, vy): (x, y, speed, heading /
-    HEADING_SCALE). In them Adam turns the cue's path; in (vx, vy) a path that passes behind
-    the lifted ball mostly speeds up (the roots' real part ``-(d . v) / |v|^2`` moves towards
-    zero either way, and its gradient points along ``v`` for such a path)."""
-    x, y, vx, vy = (float(c) for c in shot)
-    return np.array([x, y, np.hypot(vx, vy), np.arctan2(vy, vx) / HEADING_SCALE])
-
-
-def _from_polar(polar):
-    import torch
-
-    heading = polar[3] * HEADING_SCALE
-    return torch.stack([polar[0], polar[1], polar[2] * torch.cos(heading), polar[2] * torch.sin(heading)])
-
-
-def _polar_gradient(polar, grad):
-    """The loss gradient w.r.t. the polar variables from the one w.r.t. the shot (chain rule)."""
-    import torch
-
-    heading = float(polar[3]) * HEADING_SCALE
-    c, s, speed = np.cos(heading), np.sin(heading), float(polar[2])
-    g = grad.detach()
-    return torch.stack([g[0], g[1], g[2] * c + g[3] * s, HEADING_SCALE * speed * (-g[2] * s + g[3] * c)])
-
-
-def _make_optimizer(z, name: str, lr: float):
-    import torch
-
-    return torch.optim.Adam([z], lr=lr) if name == "adam" else torch.optim.SGD([z], lr=lr)
+"""Miss phase: the unit [rad] of the cue's heading among Adam's variables (up to
+``MISS_LEARNING_RATE * HEADING_SCALE`` rad per step)."""
+HIT_LEARNING_RATE = 0.03
+"""The proposed method's hit phase with Adam: the guarded Adam's largest step
+(:class:`scenes.optim.GuardedAdam`) [m, m/s]."""
+HIT_GROWTH = 1.5
+"""The guarded Adam's step growth after an accepted iterate."""
 
 
 def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
@@ -327,61 +336,75 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
         return _optimise_cma(model, start, iters, callback)
     import torch
 
+    from scenes.optim import GuardedAdam
+
     z = torch.tensor(np.asarray(start, dtype=np.float64), requires_grad=True)
-    history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
-    phase, opt, polar = None, None, None  # polar: the miss phase's variables (_to_polar)
-    accepted = None  # hit phase: (shot, gradient) of the last iterate that moved the target
+    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": []}
+    phase, opt, polar = None, None, None  # polar: the miss phase's variables (to_polar)
+    guard = None  # proposed, Adam: the guarded hit phase
+    accepted = None  # proposed, gradient descent: (shot, gradient) of the last iterate in the hit region
     rate = lr
     reached = stalled = None
     t_start = time.perf_counter()
     for it in range(iters + 1):
         t0 = time.perf_counter()
-        _, res, loss, hit, _pair = evaluate(model, z, method, grad=True)
+        _, res, loss, good, _event = evaluate(model, z, method, grad=True)
         distance = target_distance(model, res)
         history["loss"].append(float(loss.detach()))
         history["distance"].append(distance)
-        history["hit"].append(hit)
+        history["hit"].append(good)
+        history["moved"].append(bool(moved(res)[target_of(model)]))
         history["shot"].append(z.detach().numpy().copy())
-        good = hit and distance < TARGET_TOLERANCE
-        if good:
+        if history["moved"][-1] and distance < TARGET_TOLERANCE:
             reached = it
-        wanted = "hit" if (hit or method == "baseline") else "miss"
-        take = not (method == "proposed" and accepted is not None and not hit)
+        wanted = "hit" if (good or method == "baseline") else "miss"
+        if method == "proposed" and optimizer == "adam" and guard is None and good:
+            guard = GuardedAdam(z, HIT_LEARNING_RATE, (0.9, 0.999), HIT_GROWTH)
+        if guard is not None:
+            take = guard.judge(loss, good)
+        else:
+            take = not (method == "proposed" and accepted is not None and not good)
         history["accepted"].append(take)
-        if good or it == iters:
+        if reached is not None or it == iters:
             history["seconds"].append(time.perf_counter() - t0)
             break
+        if guard is not None:
+            guard.zero_grad()
+            guard.step(loss, good, take)
+            if not bool(torch.isfinite(z.grad).all()):
+                raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
+            _finish_step(z, None, history, t0, it, callback)
+            continue
         if take:
             z.grad = None
             loss.backward()
             if not bool(torch.isfinite(z.grad).all()):
                 raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
             fresh = wanted != phase or (wanted == "hit" and optimizer == "gd")  # no momentum to carry on
-            if fresh and (wanted == "hit" or _pair is None) and not bool(z.grad.abs().sum() > 0.0):
+            if fresh and not bool(z.grad.abs().sum() > 0.0):
                 # a zero gradient (a shot that moves nothing it should) without momentum:
                 # every later iterate would be this one
                 stalled = it
                 history["seconds"].append(time.perf_counter() - t0)
                 break
             if wanted != phase:
-                # a new phase starts with a fresh optimiser: the miss loss with Adam, the hit
-                # loss with the chosen one (its moments mean nothing across losses)
+                # a new phase starts with a fresh optimiser (its moments mean nothing across losses)
                 phase = wanted
                 rate = MISS_LEARNING_RATE if phase == "miss" else lr
                 if phase == "miss":
-                    polar = torch.tensor(_to_polar(z.detach().numpy()), dtype=torch.float64)
+                    polar = torch.tensor(to_polar(z.detach().numpy()[2:], HEADING_SCALE), dtype=torch.float64)
                     opt = torch.optim.Adam([polar], lr=rate)
                 else:
                     polar = None
-                    opt = _make_optimizer(z, optimizer, rate)
+                    opt = (torch.optim.Adam if optimizer == "adam" else torch.optim.SGD)([z], lr=rate)
             if polar is not None:
-                polar.grad = _polar_gradient(polar, z.grad)
+                polar.grad = polar_gradient(polar, z.grad[2:], HEADING_SCALE)
             if phase == "hit" and method == "proposed":
                 if accepted is not None:
-                    rate = min(rate * 1.5, lr)  # an accepted step after a rejection grows back
+                    rate = min(rate * HIT_GROWTH, lr)  # an accepted step after a rejection grows back
                 accepted = (z.detach().clone(), z.grad.detach().clone())
         else:
-            rate *= 0.5  # the step lost the hit: back to the last hit, half the step
+            rate *= 0.5  # the step left the hit region: back to the last hit, half the step
             with torch.no_grad():
                 z.copy_(accepted[0])
             z.grad = accepted[1].clone()
@@ -389,19 +412,25 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             for group in opt.param_groups:
                 group["lr"] = rate
         opt.step()
-        with torch.no_grad():  # an iterate inside a rack ball is projected out of it
-            if polar is not None:
-                z.copy_(_from_polar(polar))
-            z.copy_(torch.tensor(outside_the_rack(z.detach().numpy()), dtype=torch.float64))
-            if polar is not None:
-                polar[:2] = z[:2]
-        history["seconds"].append(time.perf_counter() - t0)
-        if callback is not None:
-            callback(it, history)
+        _finish_step(z, polar, history, t0, it, callback)
     last = reported_iterate(history["accepted"], reached, any(history["accepted"]))
     result = _result(history, last, reached, time.perf_counter() - t_start)
     result["zero_gradient_at"] = stalled
     return result
+
+
+def _finish_step(z, polar, history, t0: float, it: int, callback) -> None:
+    """The new iterate from the miss phase's variables (when given), projected out of the rack;
+    the iteration's time; the progress callback."""
+    import torch
+
+    with torch.no_grad():
+        if polar is not None:
+            z[2:] = from_polar(polar, HEADING_SCALE)
+        z.copy_(torch.tensor(outside_the_rack(z.detach().numpy()), dtype=torch.float64))
+    history["seconds"].append(time.perf_counter() - t0)
+    if callback is not None:
+        callback(it, history)
 
 
 def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:
@@ -411,7 +440,7 @@ def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:
         "iterations_to_target": reached,
         "final_loss": history["loss"][last],
         "target_distance": history["distance"][last],
-        "target_moved": bool(history["hit"][last]),
+        "target_moved": bool(history["moved"][last]),
         "final_shot": [float(c) for c in history["shot"][last]],
         "rollouts": len(history["loss"]),
         "wall_time": wall_time,
@@ -421,16 +450,17 @@ def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:
 
 
 def task_loss(model, shot) -> tuple[float, Any, bool]:
-    """The proposed method's loss as a plain value (CMA-ES): the squared distance when the
-    target moves, ``MISS_OFFSET`` plus the lifted pair's loss otherwise. (value, rollout, hit)."""
-    _, res, loss, hit, _pair = evaluate(model, shot, "cma", grad=False)
+    """The proposed method's loss as a plain value (CMA-ES): the squared distance for a hit
+    (:func:`good_hit`), ``MISS_OFFSET`` plus the lifted event's loss otherwise. (value, rollout,
+    hit)."""
+    _, res, loss, hit, _event = evaluate(model, shot, "cma", grad=False)
     value = float(loss.detach()) if hit else MISS_OFFSET + float(loss.detach())
     return value, res, hit
 
 
 def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
     """CMA-ES on :func:`task_loss`, ``iters + 1`` rollouts at most (the gradient methods')."""
-    history = {"loss": [], "distance": [], "hit": [], "shot": [], "accepted": [], "seconds": []}
+    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": []}
     best = [np.inf, 0]
     t_start = time.perf_counter()
 
@@ -442,6 +472,7 @@ def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
         history["loss"].append(value)
         history["distance"].append(distance)
         history["hit"].append(hit)
+        history["moved"].append(bool(moved(res)[target_of(model)]))
         history["shot"].append(np.asarray(x, dtype=np.float64))
         history["accepted"].append(bool(value < best[0]))
         history["seconds"].append(time.perf_counter() - t0)
@@ -449,11 +480,11 @@ def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
             best[:] = [value, len(history["loss"]) - 1]
         if callback is not None:
             callback(len(history["loss"]) - 1, history)
-        return value, bool(hit and distance < TARGET_TOLERANCE)
+        return value, bool(history["moved"][-1] and distance < TARGET_TOLERANCE)
 
     run_cma(start, CMA_SIGMA, iters + 1, evaluate_shot)
     n = len(history["loss"])
-    reached = n - 1 if history["hit"][-1] and history["distance"][-1] < TARGET_TOLERANCE else None
+    reached = n - 1 if history["moved"][-1] and history["distance"][-1] < TARGET_TOLERANCE else None
     return _result(history, reached if reached is not None else best[1], reached, time.perf_counter() - t_start)
 
 

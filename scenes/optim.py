@@ -90,6 +90,38 @@ class GuardedAdam:
         return grad_norm
 
 
+def to_polar(velocity, heading_scale: float):
+    """A planar velocity (2,) [m/s] as an optimiser's variables (speed, heading /
+    ``heading_scale``): Adam then turns a shot instead of only speeding it up (a path that passes
+    behind a ball has a gradient along its velocity in (vx, vy)). ``heading_scale`` [rad] is
+    the heading's unit: Adam turns by up to ``lr * heading_scale`` rad per step."""
+    import numpy as np
+
+    vx, vy = (float(c) for c in velocity)
+    return np.array([np.hypot(vx, vy), np.arctan2(vy, vx) / heading_scale])
+
+
+def from_polar(polar, heading_scale: float):
+    """The velocity (2,) (a tensor) of the variables of :func:`to_polar` (a tensor (2,))."""
+    import torch
+
+    heading = polar[1] * heading_scale
+    return torch.stack([polar[0] * torch.cos(heading), polar[0] * torch.sin(heading)])
+
+
+def polar_gradient(polar, grad, heading_scale: float):
+    """A loss' gradient w.r.t. the variables of :func:`to_polar` from the one w.r.t. the
+    velocity (2,) (the chain rule)."""
+    import math
+
+    import torch
+
+    heading = float(polar[1]) * heading_scale
+    c, s, speed = math.cos(heading), math.sin(heading), float(polar[0])
+    g = grad.detach()
+    return torch.stack([g[0] * c + g[1] * s, heading_scale * speed * (-g[0] * s + g[1] * c)])
+
+
 def reported_iterate(accepted_flags: list[bool], reached, guarded: bool) -> int:
     """Index of the iterate a run reports: the last one, or the last accepted one when the run
     ended on a rejected second-phase step without reaching the target."""

@@ -45,9 +45,57 @@ def test_seeded_starts_miss(model):
         assert not B.moved(res)[1:].any()
 
 
-def test_lifted_pair_is_the_cue_and_the_target_for_a_miss(model):
+def test_the_push_chain_runs_down_the_diagonal_to_the_apex(model):
+    """Pushing the target (0.68, 0.617) at the goal needs a striker where ball 6 (0.62, 0.578)
+    is; ball 6, pushed along the line of centres (0.06, 0.039), needs one where ball 3 is, and
+    so on to the apex (ball 1), which the cue can reach."""
+    centres = model.body_q.numpy()[:, :2]
+    head, direction = B.push_chain(centres, B.target_of(model), B.GOAL)
+    assert head == 1
+    np.testing.assert_allclose(direction, np.array([0.06, 0.039]) / np.hypot(0.06, 0.039), rtol=0, atol=1e-14)
+    # a goal whose striking position is free: the target itself, pushed straight at it
+    head, direction = B.push_chain(centres, B.target_of(model), (1.0, 0.3))
+    assert head == B.target_of(model)
+    np.testing.assert_allclose(direction, np.array([0.32, -0.317]) / np.hypot(0.32, -0.317), rtol=0, atol=1e-14)
+
+
+def test_the_miss_loss_is_the_closest_approach_against_the_striking_point(model):
+    """For a miss the lifted roots' real part is the time of closest approach, so the aim term
+    equals |d_closest / 2r + u|^2 from straight-line geometry (the time term is 0 here)."""
+    from sim.events import sphere_event_roots
+
+    shot = B.STARTS["miss-above"]
+    _, res = B.simulate(model, shot)
+    event = B.lifted_event(model, res)
+    assert (event.body_a, event.body_b, event.window) == (0, 1, (0, B.STEPS))
+    roots = sphere_event_roots(model, [event], res.body_q, B.DT)[0]
+    assert float(roots[0, 1]) != 0.0  # a miss: a complex pair
+    d0 = np.array(shot[:2]) - np.array([0.5, 0.5])
+    v = np.array(shot[2:])
+    closest = d0 + v * (-(d0 @ v) / (v @ v))
+    _, u = B.push_chain(model.body_q.numpy()[:, :2], B.target_of(model), B.GOAL)
+    expected = float(np.sum((closest / (2 * B.RADIUS) + u) ** 2))
+    assert abs(float(B.miss_loss(model, res, event, roots)) - expected) < 1e-12 * expected
+
+
+def test_a_hit_needs_the_chain_s_head_struck_within_the_cone(model):
+    """DiffTaichi's start (the apex struck head-on, 33 degrees off the chain) is a hit; a cue
+    that strikes the target itself from the upper right moves it but is not."""
+    _, res = B.simulate(model, B.STARTS["default"])
+    assert B.good_hit(model, res)
+    _, res = B.simulate(model, (0.8, 0.8, -0.3, -0.45))
+    assert B.moved(res)[B.target_of(model)] and not B.good_hit(model, res)
     _, res = B.simulate(model, B.STARTS["miss-above"])
-    assert B.lifted_pair(model, res) == (0, 0)
+    assert not B.good_hit(model, res)
+
+
+def test_the_proposed_method_reaches_the_goal_from_a_miss(model):
+    """From ``miss-above`` (DiffTaichi's gradient: exactly 0) the target ends within 5 mm of
+    the goal, checked on the reported shot's own rollout."""
+    result = B.optimise(model, B.STARTS["miss-above"], 80, "proposed", "adam")
+    assert result["reached_target"] and result["iterations_to_target"] <= 80
+    _, res = B.simulate(model, result["final_shot"])
+    assert B.target_distance(model, res) < B.TARGET_TOLERANCE
 
 
 def test_the_default_start_hits_and_its_gradient_equals_central_differences(model):
@@ -102,15 +150,17 @@ def test_shots_inside_the_rack_are_projected_out():
 
 
 def test_the_miss_phase_polar_variables_and_their_gradient():
-    """(x, y, speed, heading / HEADING_SCALE) round-trips to the shot, and the chain rule of
-    ``_polar_gradient`` equals autograd through ``_from_polar``."""
+    """(speed, heading / HEADING_SCALE) round-trips to the shot's velocity, and the chain rule of
+    ``polar_gradient`` equals autograd through ``from_polar``."""
     import torch
 
-    shot = (0.14, 0.34, -0.37, -0.24)
-    polar = torch.tensor(B._to_polar(shot), dtype=torch.float64, requires_grad=True)
-    back = B._from_polar(polar)
-    np.testing.assert_allclose(back.detach().numpy(), shot, rtol=0, atol=1e-15)
-    weights = torch.tensor([0.3, -1.2, 2.0, 0.7], dtype=torch.float64)
+    from scenes.optim import from_polar, polar_gradient, to_polar
+
+    velocity = (-0.37, -0.24)
+    polar = torch.tensor(to_polar(velocity, B.HEADING_SCALE), dtype=torch.float64, requires_grad=True)
+    back = from_polar(polar, B.HEADING_SCALE)
+    np.testing.assert_allclose(back.detach().numpy(), velocity, rtol=0, atol=1e-15)
+    weights = torch.tensor([2.0, 0.7], dtype=torch.float64)
     (back * weights).sum().backward()
-    np.testing.assert_allclose(B._polar_gradient(polar.detach(), weights).numpy(), polar.grad.numpy(),
-                               rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(polar_gradient(polar.detach(), weights, B.HEADING_SCALE).numpy(),
+                               polar.grad.numpy(), rtol=1e-14, atol=1e-15)
