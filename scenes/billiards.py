@@ -30,20 +30,20 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
   and :func:`miss_loss` pulls the path's contact onto the striking point, where the contact
   normal sends the ball along the chain, at a time inside the run. That phase optimises the
   cue's speed and heading with Adam (:data:`MISS_LEARNING_RATE`, :func:`scenes.optim.to_polar`),
-  its position fixed (a free position lets the optimiser park the cue against the ball). A hit (:func:`good_hit`): the target moves and the cue's first contact sends
-  the chain's head within :data:`AIM_CONE` of the chain's direction. From the first hit the
+  its position fixed (a free one lets the cue park against the ball). A hit (:func:`good_hit`):
+  the target moves and the cue's first contact sends the head within :data:`AIM_CONE` of the
+  chain's direction. From the first hit the
   loss is the squared distance over all four unknowns, optimised with ``--optimizer``:
   ``adam``: the guarded Adam of :mod:`scenes.optim` (an iterate that is not a hit or does not
   lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`); ``gd``:
   DiffTaichi's plain gradient descent (learning rate 0.01), an iterate that is not a hit rejected
-  the same way. An iterate that puts the cue inside a rack ball is projected out of it
-  (:func:`outside_the_rack`), for every method.
+  the same way. Every method projects a cue inside a rack ball out of it (:func:`outside_the_rack`).
 * **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
   through the real contacts only: DiffTaichi's method. From a miss its gradient is exactly zero;
   a run stops at the first exactly zero gradient (``zero_gradient_at``), since every later
   iterate would be the same.
-* **cma**: CMA-ES on the proposed method's loss values (a miss costs ``MISS_OFFSET`` more than
-  any hit) with the same number of rollouts.
+* **cma**: CMA-ES on the proposed method's loss values (a shot that is not a hit costs
+  ``MISS_OFFSET`` more than any hit) with the same number of rollouts.
 """
 
 from __future__ import annotations
@@ -229,7 +229,8 @@ its very start (a cue parked against the ball) nor after its end."""
 
 
 def _chain_of(model):
-    centres = model.body_q.numpy()[:, :2]
+    centres = model.body_q.numpy()[:, :2].copy()
+    centres[0] = np.inf  # the cue is the striker, not in the way
     return push_chain(centres, target_of(model), GOAL)
 
 
@@ -319,8 +320,7 @@ HEADING_SCALE = 3.0
 HIT_LEARNING_RATE = 0.03
 """The proposed method's hit phase with Adam: the guarded Adam's largest step
 (:class:`scenes.optim.GuardedAdam`) [m, m/s]."""
-HIT_GROWTH = 1.5
-"""The guarded Adam's step growth after an accepted iterate."""
+HIT_GROWTH = 1.5  # the hit phase's step growth after an accepted iterate
 
 
 def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
@@ -519,8 +519,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", type=str, default=None, metavar="PATH.png",
                         help="also write the loss curves of the methods as a PNG (needs matplotlib; default: none)")
     parser.add_argument("--optimizer", choices=OPTIMIZERS, default="gd",
-                        help="the optimiser of the squared distance: DiffTaichi's plain gradient descent or Adam, "
-                             "learning rate 0.01 (default %(default)s)")
+                        help="the optimiser of the squared distance: DiffTaichi's plain gradient descent "
+                             "(learning rate 0.01) or the guarded Adam (0.03) (default %(default)s)")
 
 
 def check_arguments(args: argparse.Namespace) -> str | None:
@@ -595,6 +595,6 @@ def run(args: argparse.Namespace, log: Any) -> dict[str, Any]:
         out[method] = result
     if args.plot is not None:
         plot_loss_curves(curves, args.plot, f"billiards from '{name}' ({args.optimizer})",
-                         "loss [m^2] (a miss: the lifted pair's loss)")
+                         "loss [m^2] (before a hit: the lifted event's loss)")
     return {"scene": NAME, "start": name, "shot": list(shot), "goal": list(GOAL), "iters": args.iters,
             "optimizer": args.optimizer, "methods": out}
