@@ -248,8 +248,7 @@ def good_hit(model, res) -> bool:
     if not moved(res)[target_of(model)]:
         return False
     head, direction = _chain_of(model)
-    cue_change = _first_change(res, 0)
-    qd = res.body_qd.detach().numpy()[:, head, 3:5]
+    cue_change, qd = _first_change(res, 0), res.body_qd.detach().numpy()[:, head, 3:5]
     head_moves = np.flatnonzero(np.any(qd != 0.0, axis=1))
     if cue_change is None or not len(head_moves) or int(head_moves[0]) != cue_change + 1:
         return False
@@ -357,6 +356,7 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
         history["shot"].append(z.detach().numpy().copy())
         if history["moved"][-1] and distance < TARGET_TOLERANCE:
             reached = it
+            history["loss"][-1] = float(distance_loss(model, res).detach())  # the task's loss, hit or not
         wanted = "hit" if (good or method == "baseline") else "miss"
         if method == "proposed" and optimizer == "adam" and guard is None and good:
             guard = GuardedAdam(z, HIT_LEARNING_RATE, (0.9, 0.999), HIT_GROWTH)
@@ -381,7 +381,7 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             if not bool(torch.isfinite(z.grad).all()):
                 raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
             fresh = wanted != phase or (wanted == "hit" and optimizer == "gd")  # no momentum to carry on
-            if fresh and not bool(z.grad.abs().sum() > 0.0):
+            if fresh and not bool(z.grad[2 if wanted == "miss" else 0:].abs().sum() > 0.0):
                 # a zero gradient (a shot that moves nothing it should) without momentum:
                 # every later iterate would be this one
                 stalled = it

@@ -87,6 +87,12 @@ def test_a_hit_needs_the_chain_s_head_struck_within_the_cone(model):
     assert B.moved(res)[B.target_of(model)] and not B.good_hit(model, res)
     _, res = B.simulate(model, B.STARTS["miss-above"])
     assert not B.good_hit(model, res)
+    # the apex struck from below: it leaves 80 degrees above the x axis (47 off the chain) and
+    # moves the target, but is not a hit; struck a little further left, it leaves 32 off: a hit
+    _, res = B.simulate(model, (0.49, 0.3, 0.0, 0.6))
+    assert B.moved(res)[B.target_of(model)] and not B.good_hit(model, res)
+    _, res = B.simulate(model, (0.45, 0.3, 0.1, 0.6))
+    assert B.good_hit(model, res)
 
 
 def test_the_proposed_method_reaches_the_goal_from_a_miss(model):
