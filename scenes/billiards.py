@@ -276,22 +276,22 @@ def miss_loss(model, res, event, roots):
       so the loss pulls the path onto the ball and its contact normal onto ``u`` at once; it is 0
       exactly for paths that enter the ball at the striking point;
     * time: ``tau`` inside :data:`CONTACT_WINDOW` of the run (the squared excess, in run
-      durations): a shot heading away (``tau < 0``) turns towards the ball.
+      durations); for a ball behind the cue (``tau < 0``), where the aim is flat in the heading,
+      also the squared distance back to the closest approach in ball diameters, which turns the
+      cue around.
     """
     import torch
 
-    _, direction = _chain_of(model)
-    first, last = event.window
-    duration = STEPS * DT
-    tau = roots[0, 0]
+    (_, direction), (first, last), tau, duration = _chain_of(model), event.window, roots[0, 0], STEPS * DT
     low, high = (f * duration for f in CONTACT_WINDOW)
     time_loss = ((low - tau).clamp(min=0.0) ** 2 + (tau - high).clamp(min=0.0) ** 2) / duration ** 2
     q = res.body_q[:, :, :2]
     start = q[first, 0] - q[first, event.body_b]
-    s = (tau / ((last - first) * DT)).clamp(0.0, 1.0)
-    offset = start + s * (q[last, 0] - q[last, event.body_b] - start)
+    travel = q[last, 0] - q[last, event.body_b] - start
+    offset = start + (tau / ((last - first) * DT)).clamp(0.0, 1.0) * travel
     aim = ((offset / (2 * RADIUS) + torch.as_tensor(direction, dtype=torch.float64)) ** 2).sum()
-    return aim + time_loss
+    behind = (-tau).clamp(min=0.0) * travel.norm() / ((last - first) * DT * 2 * RADIUS)
+    return aim + time_loss + behind ** 2
 
 
 def evaluate(model, shot, method: str, grad: bool):
