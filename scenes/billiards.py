@@ -24,7 +24,7 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
 ``TARGET_TOLERANCE`` (5 mm) of the goal:
 
 * **proposed**: until the shot is a hit, a lifted sphere event pulls the cue onto the ball that
-  the chain to the goal needs first: :func:`push_chain` follows the balls in the way of pushing
+  the chain to the goal needs first: :func:`scenes.rack.push_chain` follows the balls in the way of pushing
   the target straight at the goal back to one the cue can reach (on DiffTaichi's rack, the
   apex); :func:`lifted_event` lifts the cue and that ball over the cue's first straight path,
   and :func:`miss_loss` pulls the path's contact onto the striking point, where the contact
@@ -35,9 +35,13 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
   chain's direction. From the first hit the
   loss is the squared distance over all four unknowns, optimised with ``--optimizer``:
   ``adam``: the guarded Adam of :mod:`scenes.optim` (an iterate that is not a hit or does not
-  lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`); ``gd``:
+  lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`). Where every
+  descent step from the best hit crosses a discontinuity into a worse branch (a contact that
+  switches on or off), the step shrinks without end: once it is below :data:`STALL_STEP` of its
+  largest, the best hit is played again :data:`STALL_SPEEDUP` times faster with the same aim,
+  and a fresh hit phase starts there (``restarts`` in the result lists those iterations); ``gd``:
   DiffTaichi's plain gradient descent (learning rate 0.01), an iterate that is not a hit rejected
-  the same way. Every method projects a cue inside a rack ball out of it (:func:`outside_the_rack`).
+  the same way. Every method projects a cue inside a rack ball out of it (:func:`scenes.rack.outside_the_rack`).
 * **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
   through the real contacts only: DiffTaichi's method. From a miss its gradient is exactly zero;
   a run stops at the first exactly zero gradient (``zero_gradient_at``), since every later
@@ -56,6 +60,7 @@ import numpy as np
 
 from scenes.optim import (ITERS_HELP, central_difference_check, from_polar, parse_methods, plot_loss_curves,
                           polar_gradient, progress, reported_iterate, run_cma, to_polar)
+from scenes.rack import RADIUS, ROWS, outside_the_rack, push_chain, rack_positions
 from scenes.registry import int_at_least
 
 NAME = "billiards"
@@ -64,12 +69,10 @@ DESCRIPTION = "DiffTaichi's billiards: move the last rack ball to a goal from an
 PRECISIONS = ("float64",)
 SUPPORTS_STEPS = False
 
-RADIUS = 0.03  # [m]
 MASS = 1.0  # [kg]
 RESTITUTION = 0.8
 DT = 0.003  # [s]
 STEPS = 1023
-ROWS = 4
 GOAL = (0.9, 0.75)  # [m]
 STARTS = {"default": (0.1, 0.5, 0.3, 0.0), "miss-above": (0.1, 0.5, 0.3, 0.1), "miss-away": (0.1, 0.5, -0.3, 0.0)}
 """Cue position (x, y) [m] and velocity (vx, vy) [m/s] of the named starts."""
@@ -84,13 +87,6 @@ METHODS = ("proposed", "baseline", "cma")
 OPTIMIZERS = ("gd", "adam")
 SEEDED_POSITION = ((0.05, 0.4), (0.1, 0.9))  # [m] ranges of a seeded cue position (x, y)
 SEEDED_SPEED = (0.2, 0.5)  # [m/s]
-
-
-def rack_positions(rows: int = ROWS) -> np.ndarray:
-    """Ball centres of a rack of ``rows`` rows (DiffTaichi's layout), (rows (rows + 1) / 2, 2) [m]:
-    row ``i`` holds ``i + 1`` balls at ``x = 0.5 + 2 r i``, ``y = 0.5 + 2 r j - 0.7 r i``."""
-    return np.array([(0.5 + 2 * RADIUS * i, 0.5 + 2 * RADIUS * j - 0.7 * RADIUS * i)
-                     for i in range(rows) for j in range(i + 1)], dtype=np.float64)
 
 
 def build(rows: int = ROWS, cue=STARTS["default"]):
@@ -119,31 +115,6 @@ def cue_path_gap(model, shot) -> float:
     denom = float(travel @ travel)
     s = np.clip(-(d0 @ travel) / denom, 0.0, 1.0) if denom > 0.0 else np.zeros(len(centres))
     return float(np.min(np.linalg.norm(d0 + s[:, None] * travel[None], axis=1)) - 2 * RADIUS)
-
-
-def outside_the_rack(shot, rows: int = ROWS) -> tuple[float, float, float, float]:
-    """``shot`` with the cue's position moved out of any rack ball it overlaps, radially to
-    touching (the projection of an optimiser's iterate onto the shots that can be played)."""
-    x = np.asarray(shot, dtype=np.float64).copy()
-    rack = rack_positions(rows)
-    for _ in range(len(rack)):
-        offsets = x[None, :2] - rack
-        gaps = np.linalg.norm(offsets, axis=1) - 2 * RADIUS
-        k = int(np.argmin(gaps))
-        if gaps[k] >= 0.0:
-            break
-        norm = float(np.linalg.norm(offsets[k]))
-        direction = offsets[k] / norm if norm > 0.0 else np.array([-1.0, 0.0])
-        x[:2] = rack[k] + direction * 2 * RADIUS * (1.0 + 1e-9)
-    gaps = np.linalg.norm(x[None, :2] - rack, axis=1) - 2 * RADIUS
-    if gaps.min() < 0.0:
-        # wedged between touching balls: onto the circle around the whole rack instead
-        centre = rack.mean(axis=0)
-        offset = x[:2] - centre
-        norm = float(np.linalg.norm(offset))
-        direction = offset / norm if norm > 0.0 else np.array([-1.0, 0.0])
-        x[:2] = centre + direction * (np.linalg.norm(rack - centre, axis=1).max() + 2 * RADIUS) * (1.0 + 1e-9)
-    return tuple(float(c) for c in x)
 
 
 def seeded_start(model, seed: int) -> tuple[float, float, float, float]:
@@ -191,37 +162,9 @@ def moved(res) -> np.ndarray:
     return np.any(res.body_qd[:, :, 3:].detach().numpy() != 0.0, axis=(0, 2))
 
 
-def push_chain(centres, target: int, goal, radius: float = RADIUS) -> tuple[int, np.ndarray]:
-    """The ball a shot must strike first to send ``target`` towards ``goal``, and the direction
-    to strike it in: ``(head, direction)`` (a body index and a unit vector (2,)).
-
-    The rule, on the balls at rest (``centres`` (B, 2) [m]): the target must be pushed straight
-    at the goal, by a ball touching it from the opposite side. If another ball overlaps that
-    striking position, it is in the way and becomes the one to push, along the line of centres
-    (a ball struck along the line of centres leaves along it); and so on until the striking
-    position is free. On DiffTaichi's rack the chain runs down the diagonal from the target to
-    the apex: the apex, struck about 33 degrees above the table's x axis."""
-    centres = np.asarray(centres, dtype=np.float64)
-    ball = int(target)
-    direction = np.asarray(goal, dtype=np.float64) - centres[ball]
-    direction = direction / np.linalg.norm(direction)
-    chain = {ball}
-    while True:
-        striker = centres[ball] - 2 * radius * direction
-        gaps = np.linalg.norm(centres - striker[None], axis=1) - 2 * radius
-        gaps[sorted(chain)] = np.inf
-        blocker = int(np.argmin(gaps))
-        if gaps[blocker] >= 0.0:
-            return ball, direction
-        direction = centres[ball] - centres[blocker]
-        direction = direction / np.linalg.norm(direction)
-        ball = blocker
-        chain.add(ball)
-
-
 AIM_CONE = 45.0
 """[deg] A shot is a hit (the proposed method's second phase) when the target moves and the
-cue's first contact sends the chain's head (:func:`push_chain`) within this angle of the
+cue's first contact sends the chain's head (:func:`scenes.rack.push_chain`) within this angle of the
 chain's direction. DiffTaichi's own start, a straight shot at the apex, is 33 degrees off."""
 CONTACT_WINDOW = (0.1, 0.9)
 """Where in the run (fractions of its duration) the miss loss wants the lifted contact: not at
@@ -258,7 +201,7 @@ def good_hit(model, res) -> bool:
 
 def lifted_event(model, res):
     """The sphere event the proposed method lifts while the shot is not a hit: the cue and the
-    chain's head (:func:`push_chain`), over the cue's first straight path (from the start to
+    chain's head (:func:`scenes.rack.push_chain`), over the cue's first straight path (from the start to
     its first contact, or the whole run)."""
     from sim.events import SphereEvent
 
@@ -320,6 +263,11 @@ HIT_LEARNING_RATE = 0.03
 """The proposed method's hit phase with Adam: the guarded Adam's largest step
 (:class:`scenes.optim.GuardedAdam`) [m, m/s]."""
 HIT_GROWTH = 1.5  # the hit phase's step growth after an accepted iterate
+STALL_STEP = 2.0 ** -12
+"""The guarded hit phase is stalled once its step has shrunk below this fraction of
+:data:`HIT_LEARNING_RATE` (net halvings, each a rejected iterate)."""
+STALL_SPEEDUP = 1.5
+"""At a stall the best hit is played again this much faster, with the same aim."""
 
 
 def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
@@ -338,7 +286,8 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
     from scenes.optim import GuardedAdam
 
     z = torch.tensor(np.asarray(start, dtype=np.float64), requires_grad=True)
-    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": []}
+    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": [],
+               "restarts": []}
     phase, opt, polar = None, None, None  # polar: the miss phase's variables (to_polar)
     guard = None  # proposed, Adam: the guarded hit phase
     accepted = None  # proposed, gradient descent: (shot, gradient) of the last iterate in the hit region
@@ -373,6 +322,15 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             guard.step(loss, good, take)
             if not bool(torch.isfinite(z.grad).all()):
                 raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
+            if guard.lr < HIT_LEARNING_RATE * STALL_STEP:
+                # every descent step from the best hit crosses a discontinuity (a contact that
+                # switches on or off, or two that swap order) into a worse branch: the same aim
+                # played faster changes the later contacts and leaves the chain more time
+                with torch.no_grad():
+                    z.copy_(guard.accepted[0])
+                    z[2:] *= STALL_SPEEDUP
+                guard = None  # a fresh hit phase from the faster shot
+                history["restarts"].append(it + 1)
             _finish_step(z, None, history, t0, it, callback)
             continue
         if take:
@@ -445,6 +403,7 @@ def _result(history, last: int, reached, wall_time: float) -> dict[str, Any]:
         "rollouts": len(history["loss"]),
         "wall_time": wall_time,
         "seconds_per_iteration": float(np.mean(seconds[1:] if len(seconds) > 1 else seconds)),
+        "restarts": list(history["restarts"]),
         "history": history,
     }
 
@@ -460,7 +419,8 @@ def task_loss(model, shot) -> tuple[float, Any, bool]:
 
 def _optimise_cma(model, start, iters: int, callback=None) -> dict[str, Any]:
     """CMA-ES on :func:`task_loss`, ``iters + 1`` rollouts at most (the gradient methods')."""
-    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": []}
+    history = {"loss": [], "distance": [], "hit": [], "moved": [], "shot": [], "accepted": [], "seconds": [],
+               "restarts": []}
     best = [np.inf, 0]
     t_start = time.perf_counter()
 

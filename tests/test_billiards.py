@@ -104,6 +104,26 @@ def test_the_proposed_method_reaches_the_goal_from_a_miss(model):
     assert B.target_distance(model, res) < B.TARGET_TOLERANCE
 
 
+def test_a_stalled_hit_phase_plays_the_best_hit_faster_and_reaches_the_goal(model):
+    """From a hit where every descent step crosses into a worse branch (a shot where seed 14's
+    run stopped 6.4 cm from the goal), the guarded step shrinks below ``STALL_STEP``; the next
+    shot is the best hit so far with the same position and heading, ``STALL_SPEEDUP`` faster,
+    and the run then reaches the goal."""
+    stalled = (0.375829038721194, 0.3790784145999505, 0.2016820246452815, 0.18453948584739724)
+    result = B.optimise(model, stalled, 40, "proposed", "adam")
+    history = result["history"]
+    assert result["restarts"], "the hit phase never stalled"
+    k = result["restarts"][0]
+    assert not any(history["accepted"][k - 8:k]), "a restart before the step shrank"
+    best = min((i for i in range(k) if history["accepted"][i] and history["hit"][i]), key=lambda i: history["loss"][i])
+    before, after = history["shot"][best], history["shot"][k]
+    np.testing.assert_array_equal(after[:2], before[:2])
+    np.testing.assert_allclose(after[2:], before[2:] * B.STALL_SPEEDUP, rtol=1e-15)
+    assert result["reached_target"]
+    _, res = B.simulate(model, result["final_shot"])
+    assert B.target_distance(model, res) < B.TARGET_TOLERANCE
+
+
 def test_the_default_start_hits_and_its_gradient_equals_central_differences(model):
     _, res = B.simulate(model, B.STARTS["default"])
     assert B.moved(res)[B.target_of(model)]
