@@ -35,11 +35,12 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
   chain's direction. From the first hit the
   loss is the squared distance over all four unknowns, optimised with ``--optimizer``:
   ``adam``: the guarded Adam of :mod:`scenes.optim` (an iterate that is not a hit or does not
-  lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`). Where every
-  descent step from the best hit crosses a discontinuity into a worse branch (a contact that
-  switches on or off), the step shrinks without end: once it is below :data:`STALL_STEP` of its
-  largest, the best hit is played again :data:`STALL_SPEEDUP` times faster with the same aim,
-  and a fresh hit phase starts there (``restarts`` in the result lists those iterations); ``gd``:
+  lower the loss is rejected: back, half the step; :data:`HIT_LEARNING_RATE`). Where the
+  descent steps from the best hit keep crossing a discontinuity into a worse branch (a later
+  contact that switches on or off), the step keeps shrinking: once it is below
+  :data:`STALL_STEP` of its largest, the best hit is played again :data:`STALL_SPEEDUP` times
+  faster with the same aim, and a fresh hit phase starts there (at most
+  :data:`STALL_RESTARTS` times; ``restarts`` in the result lists the rollouts that replay); ``gd``:
   DiffTaichi's plain gradient descent (learning rate 0.01), an iterate that is not a hit rejected
   the same way. Every method projects a cue inside a rack ball out of it (:func:`scenes.rack.outside_the_rack`).
 * **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
@@ -265,9 +266,11 @@ HIT_LEARNING_RATE = 0.03
 HIT_GROWTH = 1.5  # the hit phase's step growth after an accepted iterate
 STALL_STEP = 2.0 ** -12
 """The guarded hit phase is stalled once its step has shrunk below this fraction of
-:data:`HIT_LEARNING_RATE` (net halvings, each a rejected iterate)."""
+:data:`HIT_LEARNING_RATE` (each rejected iterate halves the step, each accepted one grows it by
+:data:`HIT_GROWTH`)."""
 STALL_SPEEDUP = 1.5
 """At a stall the best hit is played again this much faster, with the same aim."""
+STALL_RESTARTS = 3  # at most this many faster replays per run
 
 
 def optimise(model, start, iters: int, method: str = "proposed", optimizer: str = "gd",
@@ -322,14 +325,16 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
             guard.step(loss, good, take)
             if not bool(torch.isfinite(z.grad).all()):
                 raise FloatingPointError(f"billiards: the gradient at iteration {it} is not finite ({z.grad.tolist()})")
-            if guard.lr < HIT_LEARNING_RATE * STALL_STEP:
-                # every descent step from the best hit crosses a discontinuity (a contact that
-                # switches on or off, or two that swap order) into a worse branch: the same aim
-                # played faster changes the later contacts and leaves the chain more time
+            if guard.lr < HIT_LEARNING_RATE * STALL_STEP and len(history["restarts"]) < STALL_RESTARTS:
+                # the descent steps from the best hit keep crossing a discontinuity (a later
+                # contact that switches on or off) into a worse branch: the same aim played
+                # faster changes the later contacts and leaves the chain more time
                 with torch.no_grad():
                     z.copy_(guard.accepted[0])
                     z[2:] *= STALL_SPEEDUP
-                guard = None  # a fresh hit phase from the faster shot
+                # a fresh hit phase from the faster shot, or (should it not be a hit) a fresh
+                # miss phase from its velocity
+                guard, phase = None, None
                 history["restarts"].append(it + 1)
             _finish_step(z, None, history, t0, it, callback)
             continue
@@ -372,6 +377,10 @@ def optimise(model, start, iters: int, method: str = "proposed", optimizer: str 
         opt.step()
         _finish_step(z, polar, history, t0, it, callback)
     last = reported_iterate(history["accepted"], reached, any(history["accepted"]))
+    if reached is None and history["restarts"]:
+        # a fresh phase accepts its first iterate whatever its loss: report the best hit
+        hits = [i for i, (taken, hit) in enumerate(zip(history["accepted"], history["hit"])) if taken and hit]
+        last = min(hits, key=lambda i: history["loss"][i]) if hits else last
     result = _result(history, last, reached, time.perf_counter() - t_start)
     result["zero_gradient_at"] = stalled
     return result
