@@ -214,11 +214,14 @@ def lifted_event(model, res):
 def miss_loss(model, res, event, roots):
     """The lifted event's loss from its roots (2, 2) [s] (slots ``t-``, ``t+``; Re, Im):
 
-    * aim: at ``tau = Re t-`` (clamped to the window) the offset ``d`` of the cue from the head,
-      against the striking offset ``-2 r u`` (``u`` the chain's direction): ``|d / 2r + u|^2``.
-      For a miss (a complex pair) ``tau`` is the closest approach and ``|d|^2 = (2 r)^2 + a Im^2``,
-      so the loss pulls the path onto the ball and its contact normal onto ``u`` at once; it is 0
-      exactly for paths that enter the ball at the striking point;
+    * aim: at ``tau = Re t-`` (clamped to :data:`CONTACT_WINDOW` and to the event's window) the
+      offset ``d`` of the cue from the head, against the striking offset ``-2 r u`` (``u`` the
+      chain's direction): ``|d / 2r + u|^2``. For a miss (a complex pair) ``tau`` is the closest
+      approach and ``|d|^2 = (2 r)^2 + a Im^2``, so the loss pulls the path onto the ball and its
+      contact normal onto ``u`` at once; it is 0 exactly for paths that enter the ball at the
+      striking point. The clamp to the contact window keeps a slope in the heading where the
+      closest approach is at the cue's start (a ball abeam of it): there the offset at the
+      closest approach is largest and flat in the heading;
     * time: ``tau`` inside :data:`CONTACT_WINDOW` of the run (the squared excess, in run
       durations); for a ball behind the cue (``tau < 0``), where the aim is flat in the heading,
       also the squared distance back to the closest approach in ball diameters, which turns the
@@ -232,7 +235,7 @@ def miss_loss(model, res, event, roots):
     q = res.body_q[:, :, :2]
     start = q[first, 0] - q[first, event.body_b]
     travel = q[last, 0] - q[last, event.body_b] - start
-    offset = start + (tau / ((last - first) * DT)).clamp(0.0, 1.0) * travel
+    offset = start + (tau.clamp(low, high) / ((last - first) * DT)).clamp(0.0, 1.0) * travel
     aim = ((offset / (2 * RADIUS) + torch.as_tensor(direction, dtype=torch.float64)) ** 2).sum()
     behind = (-tau).clamp(min=0.0) * travel.norm() / ((last - first) * DT * 2 * RADIUS)
     return aim + time_loss + behind ** 2

@@ -78,6 +78,36 @@ def test_the_miss_loss_is_the_closest_approach_against_the_striking_point(model)
     assert abs(float(B.miss_loss(model, res, event, roots)) - expected) < 1e-12 * expected
 
 
+def test_the_miss_loss_slopes_towards_a_ball_abeam_of_the_cue(model):
+    """Seeded start 34 passes the apex abeam: its closest approach comes 0.06 s after the start,
+    before the contact window. The aim is then taken at the window's start (straight-line
+    geometry, to 1e-12), and the loss falls as the heading turns towards the ball (at the closest
+    approach itself the offset is largest and flat in the heading: a ridge)."""
+    from sim.events import sphere_event_roots
+
+    def loss_at(heading):
+        speed = float(np.hypot(*start[2:]))
+        shot = (*start[:2], speed * np.cos(heading), speed * np.sin(heading))
+        _, res = B.simulate(model, shot)
+        event = B.lifted_event(model, res)
+        roots = sphere_event_roots(model, [event], res.body_q, B.DT)[0]
+        return float(B.miss_loss(model, res, event, roots)), shot
+
+    start = B.seeded_start(model, 34)
+    heading = float(np.arctan2(start[3], start[2]))
+    value, shot = loss_at(heading)
+    d0, v = np.array(shot[:2]) - np.array([0.5, 0.5]), np.array(shot[2:])
+    tau, duration = -(d0 @ v) / (v @ v), B.STEPS * B.DT
+    low = B.CONTACT_WINDOW[0] * duration
+    assert 0.0 < tau < low
+    _, u = B.push_chain(model.body_q.numpy()[:, :2], B.target_of(model), B.GOAL)
+    expected = float(np.sum(((d0 + low * v) / (2 * B.RADIUS) + u) ** 2)) + (low - tau) ** 2 / duration ** 2
+    assert abs(value - expected) < 1e-12 * expected
+    towards, _ = loss_at(heading - np.radians(5.0))  # the apex lies clockwise of the heading
+    away, _ = loss_at(heading + np.radians(5.0))
+    assert towards < value < away, (towards, value, away)
+
+
 def test_a_hit_needs_the_chain_s_head_struck_within_the_cone(model):
     """DiffTaichi's start (the apex struck head-on, 33 degrees off the chain) is a hit; a cue
     that strikes the target itself from the upper right moves it but is not."""
