@@ -219,13 +219,13 @@ def miss_loss(model, res, event, roots):
       chain's direction): ``|d / 2r + u|^2``. For a miss (a complex pair) ``tau`` is the closest
       approach and ``|d|^2 = (2 r)^2 + a Im^2``, so the loss pulls the path onto the ball and its
       contact normal onto ``u`` at once; it is 0 exactly for paths that enter the ball at the
-      striking point. The clamp to the contact window keeps a slope in the heading where the
-      closest approach is at the cue's start (a ball abeam of it): there the offset at the
-      closest approach is largest and flat in the heading;
+      striking point. The clamp to the contact window matters where the closest approach comes
+      at the cue's start (a ball abeam of it): the aim at the closest approach slopes away from
+      the ball there, into ``tau < 0``, and traps the cue; a little later on the path it slopes
+      towards the ball;
     * time: ``tau`` inside :data:`CONTACT_WINDOW` of the run (the squared excess, in run
-      durations); for a ball behind the cue (``tau < 0``), where the aim is flat in the heading,
-      also the squared distance back to the closest approach in ball diameters, which turns the
-      cue around.
+      durations); for a ball behind the cue (``tau < 0``) also the squared distance back to the
+      closest approach in ball diameters, which turns the cue around.
     """
     import torch
 

@@ -81,8 +81,8 @@ def test_the_miss_loss_is_the_closest_approach_against_the_striking_point(model)
 def test_the_miss_loss_slopes_towards_a_ball_abeam_of_the_cue(model):
     """Seeded start 34 passes the apex abeam: its closest approach comes 0.06 s after the start,
     before the contact window. The aim is then taken at the window's start (straight-line
-    geometry, to 1e-12), and the loss falls as the heading turns towards the ball (at the closest
-    approach itself the offset is largest and flat in the heading: a ridge)."""
+    geometry, to 1e-12), and the loss falls as the heading turns towards the ball (the aim at the
+    closest approach itself slopes away from the ball there: a trap)."""
     from sim.events import sphere_event_roots
 
     def loss_at(heading):
