@@ -24,9 +24,9 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
 ``TARGET_TOLERANCE`` (5 mm) of the goal:
 
 * **proposed**: until the shot is a hit, a lifted sphere event pulls the cue onto the ball that
-  the chain to the goal needs first: :func:`scenes.rack.push_chain` follows the balls in the way of pushing
-  the target straight at the goal back to one the cue can reach (on DiffTaichi's rack, the
-  apex); :func:`lifted_event` lifts the cue and that ball over the cue's first straight path,
+  the chain to the goal needs first: :func:`scenes.rack.push_chain` follows the balls in the way
+  of pushing the target straight at the goal back to one the cue can reach (on DiffTaichi's
+  rack, the apex); :func:`lifted_event` lifts the cue and that ball over the cue's first straight path,
   and :func:`miss_loss` pulls the path's contact onto the striking point, where the contact
   normal sends the ball along the chain, at a time inside the run. That phase optimises the
   cue's speed and heading with Adam (:data:`MISS_LEARNING_RATE`, :func:`scenes.optim.to_polar`),
@@ -42,7 +42,8 @@ shot are played: ``--iters`` + 1 rollouts), stopping once the target is within
   faster with the same aim, and a fresh hit phase starts there (at most
   :data:`STALL_RESTARTS` times; ``restarts`` in the result lists the rollouts that replay); ``gd``:
   DiffTaichi's plain gradient descent (learning rate 0.01), an iterate that is not a hit rejected
-  the same way. Every method projects a cue inside a rack ball out of it (:func:`scenes.rack.outside_the_rack`).
+  the same way. Every method projects a cue inside a rack ball out of it
+  (:func:`scenes.rack.outside_the_rack`).
 * **baseline**: plain gradient descent (``--optimizer``) on the squared distance from the start,
   through the real contacts only: DiffTaichi's method. From a miss its gradient is exactly zero;
   a run stops at the first exactly zero gradient (``zero_gradient_at``), since every later

@@ -83,15 +83,12 @@ def test_the_miss_loss_slopes_towards_a_ball_abeam_of_the_cue(model):
     before the contact window. The aim is then taken at the window's start (straight-line
     geometry, to 1e-12), and the loss falls as the heading turns towards the ball (the aim at the
     closest approach itself slopes away from the ball there: a trap)."""
-    from sim.events import sphere_event_roots
-
     def loss_at(heading):
         speed = float(np.hypot(*start[2:]))
         shot = (*start[:2], speed * np.cos(heading), speed * np.sin(heading))
-        _, res = B.simulate(model, shot)
-        event = B.lifted_event(model, res)
-        roots = sphere_event_roots(model, [event], res.body_q, B.DT)[0]
-        return float(B.miss_loss(model, res, event, roots)), shot
+        _, _, loss, hit, _ = B.evaluate(model, shot, "proposed", grad=False)
+        assert not hit
+        return float(loss), shot
 
     start = B.seeded_start(model, 34)
     heading = float(np.arctan2(start[3], start[2]))
@@ -135,8 +132,8 @@ def test_the_proposed_method_reaches_the_goal_from_a_miss(model):
 
 
 def test_a_stalled_hit_phase_plays_the_best_hit_faster_and_reaches_the_goal(model):
-    """From a hit where every descent step crosses into a worse branch (a shot where seed 14's
-    run stopped 6.4 cm from the goal), the guarded step shrinks below ``STALL_STEP``; the next
+    """From a hit where the descent steps keep crossing into a worse branch (a shot where seed
+    14's run once stopped 6.4 cm from the goal), the guarded step shrinks below ``STALL_STEP``; the next
     shot is the best hit so far with the same position and heading, ``STALL_SPEEDUP`` faster,
     and the run then reaches the goal."""
     stalled = (0.375829038721194, 0.3790784145999505, 0.2016820246452815, 0.18453948584739724)
