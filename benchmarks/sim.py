@@ -128,9 +128,9 @@ def model_from_cloth(cloth) -> Model:
 
 
 class Ours:
-    def __init__(self, model, requires_grad=False):
+    def __init__(self, model, requires_grad=False, capture=None):
         self.model = model
-        self.integrator = SemiImplicitIntegrator(model)
+        self.integrator = SemiImplicitIntegrator(model, capture=capture)
         self.requires_grad = requires_grad
         self.s0 = model.state(requires_grad=requires_grad)
         self.s1 = model.state(requires_grad=requires_grad)
@@ -208,9 +208,9 @@ def main(argv=None):
     for dim in args.dims:
         probe = make_cloth(Cloth, dim)
         model = model_from_cloth(probe)
-        rows = []
         runs = [
             ("ours SemiImplicitIntegrator", "float64", lambda: Ours(model)),
+            ("ours, launch by launch (no graph)", "float64", lambda: Ours(model, capture=False)),
             ("ours, tape-ready (requires_grad)", "float64", lambda: Ours(model, requires_grad=True)),
             ("numpy NpIntegrator", "float32", lambda: np_peer.NpIntegrator(make_cloth(Cloth, dim))),
             (f"torch TrIntegrator cpu ({threads} thr)", "float32", lambda: torch_peer.TrIntegrator(make_cloth(Cloth, dim), "cpu")),
@@ -242,7 +242,9 @@ def main(argv=None):
             )
         print("-" * len(head))
     print(
-        "ours/peer = our (no-gradient) steps/s over the peer's. All integrators are single-threaded "
+        "ours/peer = our (no-gradient) steps/s over the peer's. Ours replays each substep as one recorded "
+        "graph (the default on the CPU); the launch-by-launch row runs the same kernels one launch at a time "
+        "(same bits). All integrators are single-threaded "
         "except torch's default. Every run does the same number of frames, so max|x-x_np| compares "
         "the same time (the Warp peer uses g = -9.81, the others -9.8)."
     )
@@ -264,13 +266,14 @@ INTERLEAVE_STEPS = 10
 
 class _SceneRun:
     """One scene stepped with collision handling ``mode`` ("none", "pgs" or "replayed"), from
-    the start, one step per :meth:`step` call, its time summed."""
+    the start, one step per :meth:`step` call, its time summed; ``capture``: the integrator's
+    (its stages up to the collision stage replayed as a recorded graph, or launched one by one)."""
 
-    def __init__(self, model, args, mode: str) -> None:
+    def __init__(self, model, args, mode: str, capture: bool = True) -> None:
         from sim.contact.response import ImpulseCollisionHandler
 
         self.args = args
-        self.integrator = SemiImplicitIntegrator(model)
+        self.integrator = SemiImplicitIntegrator(model, capture=capture)
         self.handler = None if mode == "none" else ImpulseCollisionHandler(model, differentiable=mode == "replayed")
         self.contacts = 0
         if self.handler is not None:
@@ -302,7 +305,11 @@ def scene_table(steps: int) -> None:
     without the collision handler is timed as the reference, which shows what the collision
     handling costs.
 
-    The three runs advance in turns of :data:`INTERLEAVE_STEPS` steps (interleaved), each step
+    Each run is timed twice, with the integrator's stages up to the collision stage replayed as
+    a recorded graph (the default; without a handler that is the whole substep) and launched one
+    by one, and the two must end in the same bits.
+
+    The runs advance in turns of :data:`INTERLEAVE_STEPS` steps (interleaved), each step
     timed on its own: a shared machine's speed drifts over seconds (whole runs one after the
     other varied by up to 2x here), and interleaving makes every run see the same drift, so the
     ratios hold; a turn of several steps keeps each run's caches warm after its first step."""
@@ -310,9 +317,9 @@ def scene_table(steps: int) -> None:
     from scenes.sim_common import build_model, default_args
 
     print(f"Full steps per second with collisions, per scene ({steps} steps of 1/60 s in 8 substeps, "
-          f"from the start, the three runs interleaved in turns of {INTERLEAVE_STEPS} steps; one CPU thread):")
+          f"from the start, the six runs interleaved in turns of {INTERLEAVE_STEPS} steps; one CPU thread):")
     head = (f"{'scene':12s} {'response':9s} {'particles':>9s} {'bodies':>6s} {'faces':>6s} | {'steps/s':>8s} "
-            f"{'ms/step':>8s} {'contacts/step':>13s} {'fail-safe':>9s} | {'no-collision steps/s':>20s} "
+            f"{'ms/step':>8s} {'no graph':>8s} {'same bits':>9s} | {'contacts/step':>13s} {'fail-safe':>9s} | "
             f"{'collision cost':>14s}")
     print(head)
     print("-" * len(head))
@@ -325,24 +332,34 @@ def scene_table(steps: int) -> None:
             warm = _SceneRun(model, args, mode)
             for _ in range(min(steps, WARM_UP_STEPS)):
                 warm.step()
-        runs = {mode: _SceneRun(model, args, mode) for mode in modes}
-        for start in range(0, steps, INTERLEAVE_STEPS):
+        runs = {(mode, capture): _SceneRun(model, args, mode, capture) for mode in modes for capture in (True, False)}
+        for turn, start in enumerate(range(0, steps, INTERLEAVE_STEPS)):
+            # the graph and no-graph runs of a response swap places every turn: a run's time
+            # depends on which run went just before it (the caches it left)
             for mode in modes:
-                for _ in range(min(INTERLEAVE_STEPS, steps - start)):
-                    runs[mode].step()
-        ref = runs["none"].timed_steps / runs["none"].seconds
+                for capture in ((True, False) if turn % 2 == 0 else (False, True)):
+                    for _ in range(min(INTERLEAVE_STEPS, steps - start)):
+                        runs[mode, capture].step()
+        ref = runs["none", True].timed_steps / runs["none", True].seconds
         faces = int(model.tri_count) + (model.shape_faces.shape[0] if model.shape_faces is not None else 0) \
             + (model.static_faces.shape[0] if model.static_faces is not None else 0)
-        for mode in ("pgs", "replayed"):
-            run = runs[mode]
+        for mode in modes:
+            run, plain = runs[mode, True], runs[mode, False]
             sps = run.timed_steps / run.seconds
+            same = all(np.array_equal(getattr(run.states[0], name).numpy(), getattr(plain.states[0], name).numpy())
+                       for name in ("particle_q", "particle_qd", "body_q", "body_qd"))
             # collision cost: time of the collision handling per step over the force+integration step
-            cost = (1.0 / sps - 1.0 / ref) * ref
+            cost = "-" if mode == "none" else f"{(1.0 / sps - 1.0 / ref) * ref:13.1f}x"
+            contacts = "-" if run.handler is None else f"{run.contacts / steps:.1f}"
+            failsafe = "-" if run.handler is None else run.handler.failsafe_count
             print(f"{module.NAME:12s} {mode:9s} {model.particle_count:9d} {model.body_count:6d} {faces:6d} | "
-                  f"{sps:8.1f} {1e3 / sps:8.1f} {run.contacts / steps:13.1f} {run.handler.failsafe_count:9d} | "
-                  f"{ref:20.1f} {cost:13.1f}x")
+                  f"{sps:8.1f} {1e3 / sps:8.2f} {1e3 * plain.seconds / plain.timed_steps:8.2f} "
+                  f"{'yes' if same else 'NO':>9s} | {contacts:>13s} {failsafe:>9} | {cost:>14s}")
     print("-" * len(head))
-    print("contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
+    print("ms/step: the default, the integrator's stages up to the collision stage replayed as one recorded "
+          "graph per substep (core.capture.Graphs; in the none rows, no collision handler, the whole substep); "
+          "no graph: the same run launched one launch at a time; same bits: both runs end in identical "
+          "states. contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
           "substeps that needed rigid impact zones; collision cost: time spent in collision handling "
           "per step, in multiples of the step without it (forces + integration + plane contacts).")
 

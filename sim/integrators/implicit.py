@@ -380,7 +380,9 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         finally:
             self._fixed = self._x_target = None
 
-    def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> None:
+    def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> list:
+        """The backward-Euler solve of the particles into ``pred``, run now (an iterative solve
+        that reads its residual on the host, so no stage is left for the caller: returns [])."""
         m, d, n = self.model, self.device, self.model.particle_count
         x0, v0 = s_in.particle_q, s_in.particle_qd
         f = self._spring_forces(s_in, requires_grad)
@@ -410,6 +412,7 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
                                                   wp.float64(m.particle_drag)],
                   outputs=[pred.particle_q, pred.particle_qd], device=d)
         self._last_pred = pred
+        return []
 
     def _solve_taped(self, x0, b, h: float, requires_grad: bool, fixed):
         """``A_S(x0)^-1 b`` into a fresh array, with its adjoint recorded on the active tape."""

@@ -36,7 +36,8 @@ import numpy as np
 import warp as wp
 
 from core.buffers import host
-from core.tape import active_tape
+from core.capture import Graphs, Launch, Zero, run_stages
+from core.tape import active_tape, any_tape
 from kernels.forces import eval_springs
 from kernels.integrate import (
     find_plane_contacts,
@@ -104,9 +105,15 @@ class SemiImplicitIntegrator:
             substep). With particle
             drag (``Model.particle_drag``) the flight is no longer ballistic and the update is
             first order again.
+        graphs: the :class:`core.capture.Graphs` that replay an untaped substep's stages up to
+            the collision stage (forces, integration, particle-plane contacts) as one recorded
+            graph, or None (constructor argument ``capture``: None, the default, captures on
+            the CPU; True on any device; False never). The graph gives the same bits as the
+            launches; a taped step always launches one by one.
     """
 
-    def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False):
+    def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False,
+                 capture: bool | None = None):
         if not isinstance(exact_gravity, bool):
             raise ValueError(f"exact_gravity must be True or False, got {exact_gravity!r}")
         if exact_gravity and model.sphere_count:
@@ -139,6 +146,12 @@ class SemiImplicitIntegrator:
         self._scratch_plane_index = None
         self.divergence_guard: DivergenceGuard | None = None
         self.substeps_done = 0
+        if capture not in (None, True, False):
+            raise ValueError(f"capture must be None, True or False, got {capture!r}")
+        # on the CPU the replayed graph is measured faster (benchmarks/capture.py); elsewhere
+        # only on request
+        self.graphs = Graphs(self.device) if (capture if capture is not None else wp.get_device(self.device).is_cpu) \
+            else None
 
     # ------------------------------------------------------------------ allocation
     def new_state(self, requires_grad: bool) -> State:
@@ -175,16 +188,6 @@ class SemiImplicitIntegrator:
         if bodies is not None:
             s = State(particle_q=s.particle_q, particle_qd=s.particle_qd, body_q=bodies.body_q, body_qd=bodies.body_qd)
         return s
-
-    def _forces(self, requires_grad: bool):
-        m = self.model
-        if requires_grad:
-            return wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device, requires_grad=True)
-        if self._scratch_forces is None:
-            self._scratch_forces = wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device)
-        else:
-            self._scratch_forces.zero_()
-        return self._scratch_forces
 
     def _plane_index(self, requires_grad: bool):
         m = self.model
@@ -228,7 +231,7 @@ class SemiImplicitIntegrator:
             raise SimulationDiverged(f"{guard.message()} (substep {self.substeps_done}, h = {h:.3g} s)")
 
     def _advance(self, s_in: State, s_out: State, h: float, requires_grad: bool) -> None:
-        m, d = self.model, self.device
+        m = self.model
         planes = m.particle_count > 0 and m.plane_count > 0
         handler = self.collision_handler
 
@@ -242,29 +245,18 @@ class SemiImplicitIntegrator:
         else:
             pred = self._stage_state("pred", requires_grad)
 
-        hd = wp.float64(h)
+        # the stages up to the collision stage, launched together (one graph when captured)
+        stages = []
         if m.particle_count > 0:
-            self._integrate_particles(s_in, pred, h, requires_grad)
+            stages += self._integrate_particles(s_in, pred, h, requires_grad)
         if m.body_count > 0:
-            wp.launch(
-                integrate_bodies,
-                dim=m.body_count,
-                inputs=[
-                    s_in.body_q,
-                    s_in.body_qd,
-                    self._body_f,
-                    m.body_inv_mass,
-                    m.body_inertia,
-                    m.body_inv_inertia,
-                    self.gravity,
-                    hd,
-                    self._drift(h),
-                ],
-                outputs=[pred.body_q, pred.body_qd],
-                device=d,
-            )
+            stages.append(Launch(integrate_bodies, m.body_count, (
+                s_in.body_q, s_in.body_qd, self._body_f, m.body_inv_mass, m.body_inertia, m.body_inv_inertia,
+                self.gravity, wp.float64(h), self._drift(h)), (pred.body_q, pred.body_qd)))
         cur = pred
         if spheres is not None:
+            self._run(stages, requires_grad)
+            stages = []
             body_q, body_qd = spheres(s_in, pred, h, requires_grad)
             cur = State(particle_q=pred.particle_q, particle_qd=pred.particle_qd, body_q=body_q, body_qd=body_qd)
             if pred is s_out and body_q is not s_out.body_q:
@@ -273,15 +265,17 @@ class SemiImplicitIntegrator:
                 else:
                     copy_state(cur, s_out, names=("body_q", "body_qd"), taped=False)
         if pred is s_out:
+            self._run(stages, requires_grad)
             return
         if planes:
             if handler is None:
                 out = s_out
             else:
                 out = self._stage_state("planes", requires_grad, bodies=cur)
-            self.collide_planes(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q, out.particle_qd, h,
-                               requires_grad, self.plane_separation())
+            stages += self.plane_stages(s_in.particle_q, s_in.particle_qd, pred.particle_qd, out.particle_q,
+                                        out.particle_qd, h, requires_grad, self.plane_separation())
             cur = out
+        self._run(stages, requires_grad)
         if handler is not None:
             if isinstance(handler, CollisionStage):
                 handler.set_exact_gravity(self.exact_gravity)
@@ -290,25 +284,37 @@ class SemiImplicitIntegrator:
                 cur = result
         copy_state(cur, s_out, taped=requires_grad)
 
-    def _spring_forces(self, s_in: State, requires_grad: bool):
-        """The springs' forces at the substep's start (a fresh or zeroed scratch array)."""
+    def _run(self, stages: list, requires_grad: bool) -> None:
+        """Runs a substep's stages: as a recorded graph (:class:`core.capture.Graphs`) when
+        capture is on and nothing is taped, else launch by launch."""
+        if self.graphs is not None and not requires_grad and not any_tape():
+            self.graphs.run(stages)
+        else:
+            run_stages(stages, self.device)
+
+    def _spring_stages(self, s_in: State, requires_grad: bool) -> tuple[wp.array, list]:
+        """The springs' forces at the substep's start: (the force array (a fresh one, or a
+        scratch one zeroed by the first stage), the stages that fill it)."""
         m = self.model
-        f = self._forces(requires_grad)
+        if requires_grad:
+            f = wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device, requires_grad=True)
+            stages = []
+        else:
+            if self._scratch_forces is None:
+                self._scratch_forces = wp.zeros(m.particle_count, dtype=wp.vec3d, device=self.device)
+            f = self._scratch_forces
+            stages = [Zero(f)]
         if self._spring_indices is not None:
-            wp.launch(
-                eval_springs,
-                dim=m.spring_count,
-                inputs=[
-                    s_in.particle_q,
-                    s_in.particle_qd,
-                    self._spring_indices,
-                    m.spring_rest_length,
-                    m.spring_stiffness,
-                    m.spring_damping,
-                ],
-                outputs=[f],
-                device=self.device,
-            )
+            stages.append(Launch(eval_springs, m.spring_count, (
+                s_in.particle_q, s_in.particle_qd, self._spring_indices, m.spring_rest_length, m.spring_stiffness,
+                m.spring_damping), (f,)))
+        return f, stages
+
+    def _spring_forces(self, s_in: State, requires_grad: bool):
+        """The springs' forces at the substep's start, evaluated now (a fresh or zeroed scratch
+        array)."""
+        f, stages = self._spring_stages(s_in, requires_grad)
+        run_stages(stages, self.device)
         return f
 
     def _drift(self, h: float) -> wp.vec3d:
@@ -316,18 +322,15 @@ class SemiImplicitIntegrator:
         c = -0.5 * h * h if self.exact_gravity else 0.0
         return wp.vec3d(*(c * float(g) for g in self.gravity))
 
-    def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> None:
-        """Spring forces and semi-implicit Euler of the particles into ``pred``."""
+    def _integrate_particles(self, s_in: State, pred: State, h: float, requires_grad: bool) -> list:
+        """The stages of spring forces and semi-implicit Euler of the particles into ``pred``
+        (run by the caller with the substep's other stages)."""
         m = self.model
-        f = self._spring_forces(s_in, requires_grad)
-        wp.launch(
-            integrate_particles,
-            dim=m.particle_count,
-            inputs=[s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h),
-                    self._drift(h), wp.float64(m.particle_drag)],
-            outputs=[pred.particle_q, pred.particle_qd],
-            device=self.device,
-        )
+        f, stages = self._spring_stages(s_in, requires_grad)
+        stages.append(Launch(integrate_particles, m.particle_count, (
+            s_in.particle_q, s_in.particle_qd, f, m.particle_inv_mass, self.gravity, wp.float64(h), self._drift(h),
+            wp.float64(m.particle_drag)), (pred.particle_q, pred.particle_qd)))
+        return stages
 
     def plane_separation(self) -> float:
         """The distance [m] particles keep from the planes: the collision stage's
@@ -337,31 +340,22 @@ class SemiImplicitIntegrator:
         separation = getattr(self.collision_handler, "surface_separation", None)
         return float(self.model.thickness) if separation is None else float(separation)
 
-    def collide_planes(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True,
-                       separation: float | None = None) -> None:
-        """Particle-vs-plane time-of-impact integration over one substep ``h``: from start
-        positions ``x0``, start velocities ``v_start`` and predicted velocities ``v`` (after the
-        forces) into ``x_out``, ``v_out`` (fresh arrays), stopping ``separation`` [m] (default:
-        the model's thickness) in front of the planes.
+    def plane_stages(self, x0, v_start, v, x_out, v_out, h: float, requires_grad: bool = True,
+                     separation: float | None = None) -> list:
+        """The stages of particle-vs-plane time-of-impact integration over one substep ``h``:
+        from start positions ``x0``, start velocities ``v_start`` and predicted velocities ``v``
+        (after the forces) into ``x_out``, ``v_out`` (fresh arrays), stopping ``separation`` [m]
+        (default: the model's thickness) in front of the planes.
         Which plane each particle hits is chosen outside the tape; the response is recorded."""
-        m, d = self.model, self.device
+        m = self.model
         idx = self._plane_index(requires_grad)
         hd = wp.float64(h)
         thickness = wp.float64(m.thickness if separation is None else separation)
-        wp.launch(
-            find_plane_contacts,
-            dim=m.particle_count,
-            inputs=[x0, v, m.particle_inv_mass, m.planes, int(m.plane_count), thickness, hd],
-            outputs=[idx],
-            device=d,
-            record_tape=False,
-        )
-        wp.launch(
-            respond_plane_contacts,
-            dim=m.particle_count,
-            inputs=[x0, v_start, v, m.particle_inv_mass, m.planes, idx, wp.float64(m.restitution),
-                    wp.float64(m.friction), thickness,
-                    self.gravity, hd, self._drift(h)],
-            outputs=[x_out, v_out],
-            device=d,
-        )
+        return [
+            Launch(find_plane_contacts, m.particle_count,
+                   (x0, v, m.particle_inv_mass, m.planes, int(m.plane_count), thickness, hd), (idx,),
+                   record_tape=False),
+            Launch(respond_plane_contacts, m.particle_count,
+                   (x0, v_start, v, m.particle_inv_mass, m.planes, idx, wp.float64(m.restitution),
+                    wp.float64(m.friction), thickness, self.gravity, hd, self._drift(h)), (x_out, v_out)),
+        ]
