@@ -7,8 +7,10 @@ them in C++: a replayed graph skips Python's per-launch argument packing (about 
 on the CPU), and gives the same bits as the launches (the same kernels on the same arguments).
 
 A graph holds the arrays' addresses and the scalars' values it was recorded with, so the key is
-all of them; an array replaced by another (or a changed scalar) selects another graph. Launches
-in a graph are not recorded by a ``wp.Tape``: callers run graphs only when no tape records.
+all of them; an array replaced by another (or a changed scalar) selects another graph. The
+stage list is kept with its graph, so that no array the graph writes is freed and its address
+given to another array while the graph lives. Launches in a graph are not recorded by a
+``wp.Tape``: callers run graphs only when no tape records (nor is paused).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import ctypes
 from collections import OrderedDict
 from typing import NamedTuple
 
+import numpy as np
 import warp as wp
 
 
@@ -34,7 +37,8 @@ class Launch(NamedTuple):
                   record_tape=self.record_tape)
 
     def key(self) -> tuple:
-        return (self.kernel.key, self.dim, tuple(map(argument_key, self.inputs)),
+        # the kernel object, not its name: two kernels may share a name
+        return (self.kernel, self.dim, tuple(map(argument_key, self.inputs)),
                 tuple(map(argument_key, self.outputs)))
 
 
@@ -57,8 +61,8 @@ def argument_key(value) -> object:
     kind = type(value)
     if kind is wp.array:
         return value.ptr, value.shape
-    if kind is float:
-        return value.hex()
+    if isinstance(value, (float, np.floating)):
+        return float(value).hex()
     if kind is int or kind is bool:
         return value
     if isinstance(value, ctypes.Array):  # wp.vec3d(...) and the like: its bytes
@@ -98,22 +102,24 @@ class Graphs:
         self.replayed = 0  # graph launches
 
     def run(self, stages) -> None:
-        """Runs the stage list ``stages`` (see the class docstring)."""
+        """Runs the stage list ``stages`` (see the class docstring; an empty one runs nothing)."""
+        if not stages:
+            return
         key = tuple(stage.key() for stage in stages)
-        graph = self._graphs.get(key)
-        if graph is None:
+        entry = self._graphs.get(key)
+        if entry is None:
             if key not in self._seen:
                 self._keep(self._seen, key, True)
                 run_stages(stages, self.device)
                 return
             with wp.ScopedCapture(device=self.device) as capture:
                 run_stages(stages, self.device)
-            graph = capture.graph
-            self._keep(self._graphs, key, graph)
+            entry = (capture.graph, list(stages))  # the stages keep the graph's arrays alive
+            self._keep(self._graphs, key, entry)
             self.recorded += 1
         else:
             self._graphs.move_to_end(key)
-        wp.capture_launch(graph)
+        wp.capture_launch(entry[0])
         self.replayed += 1
 
     def _keep(self, table: OrderedDict, key, value) -> None:

@@ -113,6 +113,8 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
         max_strain_step: a substep in which some spring's strain grows by more than this is
             halved (None: never).
         max_refinements: halvings of one substep at most (>= 0).
+        capture: as for :class:`sim.integrators.semi_implicit.SemiImplicitIntegrator` (the
+            bodies' and planes' stages; the spring solve is launched one by one).
 
     Attributes:
         iterations: CG iterations of the last solve; ``total_iterations``: all CG iterations
@@ -125,10 +127,10 @@ class ImplicitIntegrator(SemiImplicitIntegrator):
     def __init__(self, model: Model, requires_grad: bool | None = None, tolerance: float = DEFAULT_TOLERANCE,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS, contact_passes: int = DEFAULT_CONTACT_PASSES,
                  max_strain_step: float | None = DEFAULT_MAX_STRAIN_STEP,
-                 max_refinements: int = DEFAULT_MAX_REFINEMENTS):
+                 max_refinements: int = DEFAULT_MAX_REFINEMENTS, capture: bool | None = None):
         if model.sphere_count:
             raise ValueError("the implicit integrator steps cloth; a model with spheres takes the semi-implicit one")
-        super().__init__(model, requires_grad)
+        super().__init__(model, requires_grad, capture=capture)
         check_options(tolerance, max_iterations, contact_passes, max_strain_step, max_refinements)
         self.max_strain_step = None if max_strain_step is None else float(max_strain_step)
         self.max_refinements = int(max_refinements)

@@ -105,11 +105,12 @@ class SemiImplicitIntegrator:
             substep). With particle
             drag (``Model.particle_drag``) the flight is no longer ballistic and the update is
             first order again.
-        graphs: the :class:`core.capture.Graphs` that replay an untaped substep's stages up to
-            the collision stage (forces, integration, particle-plane contacts) as one recorded
-            graph, or None (constructor argument ``capture``: None, the default, captures on
-            the CPU; True on any device; False never). The graph gives the same bits as the
-            launches; a taped step always launches one by one.
+        graphs: the :class:`core.capture.Graphs` that replay a substep's stages up to the
+            collision stage (forces, integration, particle-plane contacts; with spheres, the
+            stages before and after the sphere stage) as recorded graphs when the step keeps no
+            gradients and no tape records, or None (constructor argument ``capture``: None, the
+            default, captures on the CPU; True on any device; False never). A graph gives the
+            same bits as the launches.
     """
 
     def __init__(self, model: Model, requires_grad: bool | None = None, exact_gravity: bool = False,
@@ -148,8 +149,8 @@ class SemiImplicitIntegrator:
         self.substeps_done = 0
         if capture not in (None, True, False):
             raise ValueError(f"capture must be None, True or False, got {capture!r}")
-        # on the CPU the replayed graph is measured faster (benchmarks/capture.py); elsewhere
-        # only on request
+        # on the CPU the replayed graph is measured faster (benchmarks/sim.py's scene table);
+        # elsewhere only on request
         self.graphs = Graphs(self.device) if (capture if capture is not None else wp.get_device(self.device).is_cpu) \
             else None
 
@@ -346,7 +347,8 @@ class SemiImplicitIntegrator:
         from start positions ``x0``, start velocities ``v_start`` and predicted velocities ``v``
         (after the forces) into ``x_out``, ``v_out`` (fresh arrays), stopping ``separation`` [m]
         (default: the model's thickness) in front of the planes.
-        Which plane each particle hits is chosen outside the tape; the response is recorded."""
+        Which plane each particle hits is chosen outside the tape; under a tape the response is
+        recorded."""
         m = self.model
         idx = self._plane_index(requires_grad)
         hd = wp.float64(h)
