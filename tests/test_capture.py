@@ -183,7 +183,10 @@ def _spheres_on_ground():
 def test_captured_steps_match_the_launches_for_the_implicit_integrator_and_spheres(case):
     """The implicit integrator (its bodies' and planes' stages captured, the spring solve not)
     and a model of spheres (stages before and after the sphere stage) end in the launches'
-    bits, with graphs replayed, after contacts with the ground."""
+    bits, with graphs replayed, after contacts with the ground. The implicit integrator's
+    substeps after the first start from a fresh State each (its refinement may halve them), so
+    only its first substep per step is sure to repeat a key: at least one replay per step from
+    the third on."""
     from sim.integrators.implicit import ImplicitIntegrator
 
     model = _cloth_on_ground() if case == "implicit cloth" else _spheres_on_ground()
@@ -200,7 +203,7 @@ def test_captured_steps_match_the_launches_for_the_implicit_integrator_and_spher
 
     captured, replayed = run(True)
     launched, _ = run(False)
-    assert replayed >= 30 * 4 - 16
+    assert replayed >= (30 - 2 if case == "implicit cloth" else 30 * 4 - 16)
     for a, b in zip(captured, launched):
         np.testing.assert_array_equal(a, b)
     z = captured[0][:, 2] if case == "implicit cloth" else captured[2][:, 2]
