@@ -147,12 +147,11 @@ class SemiImplicitIntegrator:
         self._scratch_plane_index = None
         self.divergence_guard: DivergenceGuard | None = None
         self.substeps_done = 0
-        if capture not in (None, True, False):
+        if capture is not None and not isinstance(capture, bool):
             raise ValueError(f"capture must be None, True or False, got {capture!r}")
-        # on the CPU the replayed graph is measured faster (benchmarks/sim.py's scene table);
-        # elsewhere only on request
-        self.graphs = Graphs(self.device) if (capture if capture is not None else wp.get_device(self.device).is_cpu) \
-            else None
+        if capture is None:  # on the CPU the replayed graph is measured faster (benchmarks/sim.py)
+            capture = wp.get_device(self.device).is_cpu
+        self.graphs = Graphs(self.device) if capture else None
 
     # ------------------------------------------------------------------ allocation
     def new_state(self, requires_grad: bool) -> State:
