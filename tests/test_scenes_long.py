@@ -3,8 +3,9 @@
 Per scene, one in-process run (no recording) of :data:`LONG_STEPS` steps at the scene's defaults
 (dt 1/60 s, 8 substeps), with the independent checker of :mod:`sim.penetration` evaluated on
 every frame's end state (``penetrations`` is the worst frame, ``penetration_frames`` the count of
-frames with any). Then the same scene again through ``python -m scenes NAME --steps 2000 --out
-X.rrd`` in a fresh process: its final state must hash to the same SHA-256 (bit for bit: the
+frames with any). Then the scene's first :data:`RERUN_STEPS` steps (its landing and first contacts
+included) again through ``python -m scenes NAME --steps 400 --out X.rrd`` in a fresh process: its
+final state must hash to the same SHA-256 as the long run's state at that step (bit for bit: the
 response is sequential and every reduction has a fixed order), and the recording must read back
 with ``rerun.chunk.RrdReader`` holding every frame.
 
@@ -15,6 +16,7 @@ ball is caught and slowed by the cloth and ends on the floor (cloth_rigid).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -28,6 +30,9 @@ from scenes import cloth_drop, cloth_rigid, rigid_toss, sim_common
 
 REPO = Path(__file__).resolve().parents[1]
 LONG_STEPS = 2000
+RERUN_STEPS = 400
+"""The fresh-process rerun's length (6.7 s of simulated time): past every scene's first contacts
+(asserted) and into its settling, at a fifth of the long run's cost."""
 SCENES = {"cloth_drop": cloth_drop, "rigid_toss": rigid_toss, "cloth_rigid": cloth_rigid}
 ENERGY_GROWTH_LIMIT = 1.01
 """Total energy may never exceed its initial value by more than 1 %: gravity, springs and
@@ -79,8 +84,20 @@ WORKER_GROUP = {"cloth_drop": "long_a", "rigid_toss": "long_b", "cloth_rigid": "
 )
 def test_2000_steps_no_penetration_bounded_energy_bit_identical_rerun(name, tmp_path):
     module = SCENES[name]
+    at_rerun = {}
+
+    def observe(step, state, info):
+        at_rerun["contacts"] = at_rerun.get("contacts", 0) + len(info["contacts"]["points"])
+        if step == RERUN_STEPS:
+            digest = hashlib.sha256()
+            arrays = state.numpy()
+            for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+                digest.update(np.ascontiguousarray(arrays[key]).tobytes())
+            at_rerun.update(state_sha256=digest.hexdigest(), energy_final=info["kinetic"] + info["potential"],
+                            total_contacts=at_rerun["contacts"])
+
     summary, final = sim_common.simulate(
-        module.build, sim_common.default_args(steps=LONG_STEPS), None, name=name, progress=False)
+        module.build, sim_common.default_args(steps=LONG_STEPS), None, name=name, progress=False, observer=observe)
     assert summary["steps"] == LONG_STEPS
     assert summary["penetrations"] == 0 and summary["penetration_frames"] == 0, summary
     assert summary["max_penetration_depth"] == 0.0
@@ -92,18 +109,20 @@ def test_2000_steps_no_penetration_bounded_energy_bit_identical_rerun(name, tmp_
     out = tmp_path / f"{name}.rrd"
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.run(
-        [sys.executable, "-m", "scenes", name, "--out", str(out), "--steps", str(LONG_STEPS)],
+        [sys.executable, "-m", "scenes", name, "--out", str(out), "--steps", str(RERUN_STEPS)],
         cwd=REPO, env=env, capture_output=True, text=True, timeout=1200,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     rerun = json.loads(proc.stdout.splitlines()[-1])
-    assert rerun["state_sha256"] == summary["state_sha256"]
-    for key in ("contacts", "penetrations", "energy_final", "failsafe_count"):
-        assert rerun[key] == summary[key], key
+    assert rerun["steps"] == RERUN_STEPS
+    assert rerun["state_sha256"] == at_rerun["state_sha256"]
+    assert rerun["contacts"] == at_rerun["total_contacts"] > 0
+    assert rerun["energy_final"] == at_rerun["energy_final"]
+    assert rerun["penetrations"] == 0
     rows = _read_rrd(out)
-    assert rows.get("/metrics/energy/total", 0) == LONG_STEPS
-    assert rows.get("/metrics/penetrations", 0) == LONG_STEPS
+    assert rows.get("/metrics/energy/total", 0) == RERUN_STEPS
+    assert rows.get("/metrics/penetrations", 0) == RERUN_STEPS
     if "cloth" in summary["components"]:
-        assert rows.get("/world/cloth", 0) >= LONG_STEPS
+        assert rows.get("/world/cloth", 0) >= RERUN_STEPS
     if "rigid" in summary["components"]:
-        assert rows.get("/world/bodies/0", 0) >= LONG_STEPS
+        assert rows.get("/world/bodies/0", 0) >= RERUN_STEPS
