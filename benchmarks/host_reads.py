@@ -8,9 +8,11 @@ recorded as one graph (``wp.ScopedCapture``) and, on a GPU, waits for the device
 CPU a ``host`` view costs no copy, so these counts say how far the stage is from a capturable
 substep, not what it costs here. The run takes the device's path (:data:`core.buffers.PEEK` off:
 no look at a count that a GPU would have to copy). Per scene (defaults, both responses,
-``--steps`` steps from the start); for the Gauss-Seidel response also per CCD round
-(:meth:`sim.contact.detect.ContactDetection.ccd_round`) and how many rounds left the broad-phase
-cover's room, which the host then tests.
+``--steps`` steps from the start), also per CCD round's detection
+(:meth:`sim.contact.detect.ContactDetection.ccd_detect`: for the Gauss-Seidel response the
+whole round; the replayed round then reads its approaching hits' count and the grown contact
+set's, and its solves read their sizes) and how many rounds left the broad-phase cover's room,
+which the host then tests.
 """
 
 from __future__ import annotations
@@ -50,8 +52,8 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
     counts: collections.Counter = collections.Counter()
     inside = [0]
     original_host, original_numpy, original_call = buffers.host, wp.array.numpy, ImpulseCollisionHandler.__call__
-    original_round, original_host_round, original_peek = (ContactDetection.ccd_round, ContactDetection._ccd_round,
-                                                          buffers.PEEK)
+    original_round, original_host_round, original_peek = (ContactDetection.ccd_detect,
+                                                          ContactDetection._host_tested_round, buffers.PEEK)
     in_round = [False]
 
     def counting_host(arr):
@@ -90,8 +92,8 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
         m.host = counting_host
     wp.array.numpy = counting_numpy
     ImpulseCollisionHandler.__call__ = counting_call
-    ContactDetection.ccd_round = counting_round
-    ContactDetection._ccd_round = counting_host_round
+    ContactDetection.ccd_detect = counting_round
+    ContactDetection._host_tested_round = counting_host_round
     buffers.PEEK = False
     rows = []
     try:
@@ -116,8 +118,8 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
             m.host = original_host
         wp.array.numpy = original_numpy
         ImpulseCollisionHandler.__call__ = original_call
-        ContactDetection.ccd_round = original_round
-        ContactDetection._ccd_round = original_host_round
+        ContactDetection.ccd_detect = original_round
+        ContactDetection._host_tested_round = original_host_round
         buffers.PEEK = original_peek
     return rows
 
@@ -133,10 +135,12 @@ def main(argv=None) -> list[dict[str, Any]]:
     rows = count_reads(args.steps)
     lines = [f"Host reads inside the collision stage's calls, per substep, {args.steps} steps of each scene from "
              "the start (defaults: 1/60 s, 8 substeps), on the device's path (no look at a count that a GPU would "
-             "copy). For the Gauss-Seidel response also per CCD round, and the rounds whose motion left the "
-             "broad-phase cover, which the host then tests (a fresh query).", ""]
+             "copy). Also per CCD round's detection (for the Gauss-Seidel response the whole round; the replayed "
+             "round then reads its approaching hits' count and the grown contact set's, and its exact solves "
+             "read their sizes), and the rounds whose motion left the broad-phase cover, which the host then "
+             "tests (a fresh query).", ""]
     lines += report.table(["scene", "response", "host() per substep", "numpy() per substep", "CCD rounds per substep",
-                           "host() per CCD round", "rounds tested on the host"],
+                           "host() per CCD detection", "rounds tested on the host"],
                           [[r["scene"], r["response"], r["host_per_substep"], r["numpy_per_substep"],
                             "-" if r["ccd_rounds_per_substep"] is None else r["ccd_rounds_per_substep"],
                             "-" if r["host_per_ccd_round"] is None else r["host_per_ccd_round"],

@@ -1,7 +1,8 @@
-"""The collision stage's counts stay on the device: a Gauss-Seidel CCD round brings its counts to
-the host in one read (:meth:`sim.contact.detect.ContactDetection.read_counts`), and the launches
-over bounds that a GPU runs (no peeking at the counts, :data:`core.buffers.PEEK`) give the same
-trajectories, bit for bit, as the CPU's launches over the exact counts."""
+"""The collision stage's counts stay on the device: a CCD round's detection (for the
+Gauss-Seidel response the whole round) brings its counts to the host in one read
+(:meth:`sim.contact.detect.ContactDetection.read_counts`), and the launches over bounds that a
+GPU runs (no peeking at the counts, :data:`core.buffers.PEEK`) give the same trajectories, bit
+for bit, as the CPU's launches over the exact counts, with either response."""
 
 import importlib
 
@@ -15,22 +16,23 @@ from scenes.sim_common import default_args, simulate
 SCENES = ("cloth_drop", "rigid_toss", "cloth_rigid")
 
 
-def _run(name: str, steps: int) -> str:
+def _run(name: str, steps: int, response: str = "gauss-seidel") -> str:
     module = importlib.import_module(f"scenes.{name}")
-    summary, _ = simulate(module.build, default_args(steps=steps, response="gauss-seidel"), None, name=name,
+    summary, _ = simulate(module.build, default_args(steps=steps, response=response), None, name=name,
                           progress=False)
     return summary["state_sha256"]
 
 
+@pytest.mark.parametrize("response", ["gauss-seidel", "replayed"])
 @pytest.mark.parametrize("name", SCENES)
-def test_launches_over_bounds_give_the_same_trajectory(name, monkeypatch):
+def test_launches_over_bounds_give_the_same_trajectory(name, response, monkeypatch):
     """The device path (every pass launched over its bound, the counts read by the kernels) and
     the CPU path (launches over the peeked counts) end in the same state, bit for bit, after
     steps with resting and impact contacts."""
     steps = {"cloth_drop": 40, "rigid_toss": 40, "cloth_rigid": 60}[name]
-    peeked = _run(name, steps)
+    peeked = _run(name, steps, response)
     monkeypatch.setattr(buffers, "PEEK", False)
-    assert _run(name, steps) == peeked
+    assert _run(name, steps, response) == peeked
 
 
 def test_a_ccd_round_reads_the_host_once(monkeypatch):
@@ -63,6 +65,43 @@ def test_a_ccd_round_reads_the_host_once(monkeypatch):
         monkeypatch.setattr(module, "host", counting_host)
     monkeypatch.setattr(detect.ContactDetection, "ccd_round", counting_round)
     _run("rigid_toss", 30)
+    rounds = np.array(rounds)
+    assert len(rounds) > 100
+    on_device = rounds[rounds[:, 1] == 0, 0]
+    assert (on_device == 1).all(), np.unique(on_device, return_counts=True)
+    assert len(on_device) > 0.9 * len(rounds)
+
+
+def test_a_replayed_ccd_detection_reads_the_host_once(monkeypatch):
+    """The replayed response's CCD rounds detect their hits as the Gauss-Seidel ones do: the
+    broad-phase cover tested on the device and the detection's counts in one read
+    (:meth:`sim.contact.detect.ContactDetection.ccd_detect`), no end position brought to the host
+    unless the motion left the cover."""
+    monkeypatch.setattr(buffers, "PEEK", False)
+    reads, rounds = [0], []
+    original_host, original_detect = detect.host, detect.ContactDetection.ccd_detect
+    counting = [False]
+
+    def counting_host(arr):
+        reads[0] += counting[0]
+        return original_host(arr)
+
+    def counting_detect(self, *args):
+        counting[0], reads[0] = True, 0
+        host_tested = self.host_tested_rounds
+        try:
+            return original_detect(self, *args)
+        finally:
+            counting[0] = False
+            rounds.append((reads[0], self.host_tested_rounds - host_tested))
+
+    import collision.broad_phase as broad_phase
+    import collision.narrow_phase as narrow_phase
+
+    for module in (detect, narrow_phase, broad_phase):
+        monkeypatch.setattr(module, "host", counting_host)
+    monkeypatch.setattr(detect.ContactDetection, "ccd_detect", counting_detect)
+    _run("rigid_toss", 30, "replayed")
     rounds = np.array(rounds)
     assert len(rounds) > 100
     on_device = rounds[rounds[:, 1] == 0, 0]

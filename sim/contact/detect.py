@@ -327,8 +327,8 @@ class ContactDetection:
 
     def proximity_hits(self, x0, x1_pred, x0_w, delta: float, read: bool = True) -> int:
         """:meth:`proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
-        delta`` at the start into :attr:`hits` (sorted); returns their number, or with
-        ``read=False`` a bound on it (0: none)."""
+        delta`` at the start into :attr:`hits` (sorted); returns their number (the pass's counts
+        come to the host in one read), or with ``read=False`` a bound on it (0: none)."""
         n = self.n_vertices
         radius = None
         if self.narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
@@ -338,42 +338,52 @@ class ContactDetection:
                 radius = None
         reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
         # slack: the exact test follows
-        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius, read=read)
-        planes = self.plane_hits(x0_w, delta, read=read)
-        if not read:
-            mesh, planes = self._exact(mesh, planes)
+        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius, read=False)
+        planes = self.plane_hits(x0_w, delta, read=False)
+        mesh, planes = self._exact(mesh, planes)
         if not mesh + planes:
             return 0
-        kept = self.sorted_hits(mesh, planes, 0, reach, read=read)
-        return kept if read else self.bound
+        self.sorted_hits(mesh, planes, 0, reach, read=False)
+        return int(self.read_counts()[_KEPT]) if read else self.bound
 
     def ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
-        """One CCD round of the straight paths from the start positions ``x0`` (V + 1, 3) on the
-        host (device array ``x0_w``, the positions of this substep's :meth:`proximity`) to the
-        device positions ``x1_w``: the hits (:meth:`ccd_hits`), their geometry at their detected
-        times and whether they approach (:meth:`approach`), with the counts kept on the device
-        until one read at the end (:meth:`read_counts`). The broad-phase cover is tested on the
-        device too: a round whose vertices moved farther than the proximity pass's reach radii
-        runs again over the cover's candidates (a second read), and the rare round whose motion
-        left the cover runs again with the host's test (a fresh broad-phase query). Returns the
-        number of approaching hits."""
+        """One Gauss-Seidel CCD round of the straight paths from the start positions ``x0`` (V +
+        1, 3) on the host (device array ``x0_w``, the positions of this substep's
+        :meth:`proximity`) to the device positions ``x1_w``: the hits (:meth:`ccd_detect`), their
+        geometry at their detected times and whether they approach, with the counts kept on the
+        device until the round's one read. Returns the number of approaching hits."""
+        counts = self.ccd_detect(x0, x0_w, x1_w, 2,
+                                 lambda: self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h))
+        return 0 if counts is None else int(counts[_APPROACHING])
+
+    def ccd_detect(self, x0, x0_w, x1_w, time_mode: int, decide=None) -> np.ndarray | None:
+        """The hits of the straight paths from the start positions ``x0`` (V + 1, 3) on the host
+        (device array ``x0_w``, the positions of this substep's proximity pass) to the device
+        positions ``x1_w`` (:meth:`ccd_hits`; ``time_mode`` as there), then ``decide()`` (launches
+        on the hits that leave their counts on the device), all brought to the host in one read
+        (:meth:`read_counts`). The broad-phase cover is tested on the device: a round whose
+        vertices moved farther than the proximity pass's reach radii runs again over the cover's
+        candidates (a second read), and the rare round whose motion left the cover runs again with
+        the host's test (the end positions read; a fresh broad-phase query). Returns the counts
+        (:data:`COUNT_SLOTS`), or None when no pair was a candidate (no read on the CPU)."""
         for same_start in (True, False):
             mesh = self.narrow.ccd_count_device(x0_w, x1_w, same_start, self._uncovered, self._beyond_reach)
             if mesh is None:  # no cover to test on the device
-                return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                break
             planes = self.plane_hits(x1_w, None, read=False)
             peeked = peek(self.counts)
             if peeked is not None:
                 if peeked[_UNCOVERED]:
-                    return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                    break
                 if peeked[_BEYOND_REACH]:
                     continue
                 mesh, planes = int(peeked[_MESH]), int(peeked[_PLANE])
                 if not mesh + planes:
-                    return 0
+                    return None
             if mesh + planes:
-                self.sort_and_match(mesh, planes, 2)
-                self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h)
+                self.sort_and_match(mesh, planes, time_mode)
+                if decide is not None:
+                    decide()
             else:  # no candidate: counts of no hit, read with the cover's test
                 zero(self._kept_counter)
                 zero(self._repeated_counter)
@@ -382,17 +392,18 @@ class ContactDetection:
             if counts[_UNCOVERED]:
                 break
             if not counts[_BEYOND_REACH]:
-                return int(counts[_APPROACHING])
-        return self._ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+                return counts
+        return self._host_tested_round(x0, x1_w, time_mode, decide)
 
-    def _ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
-        """:meth:`ccd_round` with the cover tested on the host (the end positions read)."""
+    def _host_tested_round(self, x0, x1_w, time_mode: int, decide) -> np.ndarray | None:
+        """:meth:`ccd_detect` with the cover tested on the host (the end positions read)."""
         self.host_tested_rounds += 1
         x1 = host(x1_w)[: self.n_vertices + 1]
-        if not self.ccd_hits(x0, x1, x1_w, 2, read=False):
-            return 0
-        self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h)
-        return int(self.read_counts()[_APPROACHING])
+        if not self.ccd_hits(x0, x1, x1_w, time_mode, read=False):
+            return None
+        if decide is not None:
+            decide()
+        return self.read_counts()
 
     def _round_decisions(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> None:
         """A Gauss-Seidel CCD round's sorted hits: their geometry at their detected times and

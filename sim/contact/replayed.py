@@ -239,8 +239,8 @@ class ReplayedSubstep:
             X1p, BQ1, tp, tb = self.plan()
             X1 = R.positions(X1p if P else None, BQ1 if B else None)
             with paused_tape():  # decisions: off the tape
-                count = hd.detect.ccd_hits(self.x0, host(X1), X1, 1)
-            if not count:
+                counts = hd.detect.ccd_detect(self.x0, self.X0, X1, 1)
+            if counts is None or not hd.detect.hits.count:
                 break
             out = self.geometry(X1, tp, tb)
             with paused_tape():

@@ -53,11 +53,12 @@ tested for approach and added to a fixed-capacity device contact set
 (:class:`sim.contact.contacts.Contacts`) by the kernels of :mod:`kernels.contact_set`; the solve
 and the plan read that set where it is. The counts stay on the device too, in one array
 (:attr:`sim.contact.detect.ContactDetection.counts`): the kernels launch over a bound and read
-them there, and a Gauss-Seidel CCD round, whose broad-phase cover is tested by a kernel as well,
-brings them to the host in one read (the loop's continue test; ``benchmarks/host_reads.py``
-counts the reads). The host also sees the per-vertex positions of the substep's start (the
-cover and the proximity pass), the active set's changes of the replayed response, and in the
-rare fail-safe the approaching hits that join impact zones.
+them there, and a CCD round's detection, whose broad-phase cover is tested by a kernel as well,
+brings them to the host in one read (for Gauss-Seidel the whole round, the loop's continue test;
+``benchmarks/host_reads.py`` counts the reads). The host also sees the per-vertex positions of
+the substep's start (the cover and the proximity pass), the replayed response's approaching and
+contact counts, the sizes of its exact solves and their decisions, and in the rare fail-safe the
+approaching hits that join impact zones.
 
 Two forms share the detection: with ``differentiable=False`` the one above (projected
 Gauss-Seidel impulses; it reuses its buffers, so stepping allocates no Warp array, and its cost
