@@ -389,7 +389,7 @@ def test_finalize_dtypes_empty_and_grad():
 
     b = ModelBuilder()
     b.add_cloth_grid((0, 0, 0), None, 2, 2, 0.1, 0.1, **CLOTH)
-    b.add_rigid_body(*box_mesh(0.1), density=10.0)
+    b.add_rigid_body(*box_mesh(0.1), density=10.0, pos=(0.0, 0.0, 1.0))  # clear of the cloth
     b.add_particle((0, 0, 3), (0, 0, -1), 0.5)
     m = b.finalize(requires_grad=True)
     assert m.particle_q.requires_grad and m.body_qd.requires_grad and m.spring_stiffness.requires_grad

@@ -62,7 +62,7 @@ def test_gradient_matches_central_differences_through_the_sphere_contact(problem
 
 
 def test_proposed_cuts_the_loss_by_90_percent_checked_on_a_fresh_rollout(problem):
-    result = C.optimise(problem, 8, "proposed")  # seed 0 reaches the cut at its 6th rollout
+    result = C.optimise(problem, 6, "proposed")  # seed 0 reaches the cut at its 6th rollout (of 7)
     assert result["reached_target"], result["loss_cut"]
     loss, _ = _loss(problem, result["best_u"])
     assert loss == result["final_loss"] and loss <= (1.0 - C.TARGET_CUT) * result["initial_loss"]

@@ -305,7 +305,8 @@ def test_fast_impact_at_one_substep_refines_and_keeps_the_converged_energy():
     ref = run(substeps=16, response="gauss-seidel")["energy_final"]
     for response in ("replayed", "gauss-seidel"):
         fine = run(substeps=1, integrator="implicit", response=response)
-        assert fine["refined_substeps"] > 0 and fine["contact_constrained"] > 0 and fine["failsafe_count"] == 0
+        assert fine["refined_substeps"] > 0 and fine["contact_constrained"] > 0 and fine["failsafe_count"] == 0, \
+            response
         assert fine["energy_max_ratio"] <= 1.0 + 1e-9 and fine["penetrations"] == 0, response
         assert abs(fine["energy_final"] - ref) < 0.15 * ref, (response, fine["energy_final"], ref)
     plain = run(substeps=1, integrator="implicit", max_strain_step=0.0, contact_passes=0, response="gauss-seidel")

@@ -18,6 +18,10 @@ from sim.builder import ModelBuilder
 from sim.mesh_io import box_mesh, icosphere
 from sim.penetration import DEFAULT_TOL, PenetrationChecker, penetrations, vertex_components
 
+# the checker's tests build interpenetrating models on purpose: finalize's warning about them is
+# the point of other tests (tests/test_builder.py), not of these
+pytestmark = pytest.mark.filterwarnings("ignore::sim.penetration.InitialPenetrationWarning")
+
 CLOTH = dict(density=0.2, stretch_stiffness=1e3, shear_stiffness=1e2, bend_stiffness=10.0, damping=0.1)
 MESH_CLOTH = dict(density=0.2, stretch_stiffness=1e3, bend_stiffness=10.0, damping=0.1)
 ONE_TRI = np.array([[0, 1, 2]])

@@ -119,6 +119,7 @@ def test_2000_steps_no_penetration_bounded_energy_bit_identical_rerun(name, tmp_
     assert rerun["contacts"] == at_rerun["total_contacts"] > 0
     assert rerun["energy_final"] == at_rerun["energy_final"]
     assert rerun["penetrations"] == 0
+    assert rerun["failsafe_count"] <= summary["failsafe_count"]  # the counter only grows
     rows = _read_rrd(out)
     assert rows.get("/metrics/energy/total", 0) == RERUN_STEPS
     assert rows.get("/metrics/penetrations", 0) == RERUN_STEPS

@@ -365,7 +365,8 @@ class ContactDetection:
         vertices moved farther than the proximity pass's reach radii runs again over the cover's
         candidates (a second read), and the rare round whose motion left the cover runs again with
         the host's test (the end positions read; a fresh broad-phase query). Returns the counts
-        (:data:`COUNT_SLOTS`), or None when no pair was a candidate (no read on the CPU)."""
+        (:data:`COUNT_SLOTS`), or None when the pass found no hit without reading the counts (on
+        the CPU, where they are peeked at; :attr:`hits` ``.count`` is then not updated)."""
         for same_start in (True, False):
             mesh = self.narrow.ccd_count_device(x0_w, x1_w, same_start, self._uncovered, self._beyond_reach)
             if mesh is None:  # no cover to test on the device
