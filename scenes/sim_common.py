@@ -363,6 +363,16 @@ class ContactGatherer(StageObserver):
                 "toi": np.concatenate(self.times)}
 
 
+def state_sha256(arrays: dict[str, Any]) -> str:
+    """The SHA-256 (hex) of a state's bits: ``particle_q``, ``particle_qd``, ``body_q`` and
+    ``body_qd`` of ``arrays`` (numpy arrays, as :meth:`sim.model.State.numpy` returns), in that
+    order; the summaries' ``state_sha256``."""
+    digest = hashlib.sha256()
+    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
+        digest.update(np.ascontiguousarray(arrays[key]).tobytes())
+    return digest.hexdigest()
+
+
 def simulate(
     build: BuildFn,
     args: argparse.Namespace,
@@ -499,9 +509,6 @@ def simulate(
     e_end = kin + pot
     scale = abs(e0) if abs(e0) > 0 else 1.0
     final = state.numpy()
-    digest = hashlib.sha256()
-    for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
-        digest.update(np.ascontiguousarray(final[key]).tobytes())
     summary = {
         "scene": name,
         "steps": steps,
@@ -533,7 +540,7 @@ def simulate(
         "energy_max_ratio": e_max / e0 if e0 > 0 else None,
         "energy_finite": bool(finite and math.isfinite(e_end)),
         "failsafe_count": int(handler.failsafe_count),
-        "state_sha256": digest.hexdigest(),
+        "state_sha256": state_sha256(final),
     }
     return summary, final
 

@@ -36,14 +36,17 @@ def test_launches_over_bounds_give_the_same_trajectory(name, response, monkeypat
     assert _run(name, steps, response) == peeked
 
 
-def test_a_ccd_round_reads_the_host_once(monkeypatch):
-    """Inside each Gauss-Seidel CCD round of ``rigid_toss`` (a box bouncing and coming to rest),
-    the stage calls ``host`` once (the round's counts; the broad-phase cover is tested on the
-    device): no per-contact or per-stage read, on the device path. A round whose motion left
-    the cover (rare) is run again with the host's test."""
+@pytest.mark.parametrize("response,counted", [("gauss-seidel", "ccd_round"), ("replayed", "ccd_detect")])
+def test_a_ccd_round_reads_the_host_once(response, counted, monkeypatch):
+    """Inside each CCD round of ``rigid_toss`` (a box bouncing and coming to rest) the stage
+    calls ``host`` once, on the device path: the round's counts, the broad-phase cover tested on
+    the device, no per-contact or per-stage read and no end position on the host. For
+    Gauss-Seidel the whole round (``ccd_round``); the replayed response's rounds detect their
+    hits the same way (``ccd_detect``; their solves then read their sizes). A round whose motion
+    left the cover (rare) is run again with the host's test."""
     monkeypatch.setattr(buffers, "PEEK", False)
     reads, rounds = [0], []
-    original_host, original_round = detect.host, detect.ContactDetection.ccd_round
+    original_host, original_round = detect.host, getattr(detect.ContactDetection, counted)
     counting = [False]
 
     def counting_host(arr):
@@ -64,45 +67,8 @@ def test_a_ccd_round_reads_the_host_once(monkeypatch):
 
     for module in (detect, narrow_phase, broad_phase):
         monkeypatch.setattr(module, "host", counting_host)
-    monkeypatch.setattr(detect.ContactDetection, "ccd_round", counting_round)
-    _run("rigid_toss", 30)
-    rounds = np.array(rounds)
-    assert len(rounds) > 100
-    on_device = rounds[rounds[:, 1] == 0, 0]
-    assert (on_device == 1).all(), np.unique(on_device, return_counts=True)
-    assert len(on_device) > 0.9 * len(rounds)
-
-
-def test_a_replayed_ccd_detection_reads_the_host_once(monkeypatch):
-    """The replayed response's CCD rounds detect their hits as the Gauss-Seidel ones do: the
-    broad-phase cover tested on the device and the detection's counts in one read
-    (:meth:`sim.contact.detect.ContactDetection.ccd_detect`), no end position brought to the host
-    unless the motion left the cover."""
-    monkeypatch.setattr(buffers, "PEEK", False)
-    reads, rounds = [0], []
-    original_host, original_detect = detect.host, detect.ContactDetection.ccd_detect
-    counting = [False]
-
-    def counting_host(arr):
-        reads[0] += counting[0]
-        return original_host(arr)
-
-    def counting_detect(self, *args):
-        counting[0], reads[0] = True, 0
-        host_tested = self.host_tested_rounds
-        try:
-            return original_detect(self, *args)
-        finally:
-            counting[0] = False
-            rounds.append((reads[0], self.host_tested_rounds - host_tested))
-
-    import collision.broad_phase as broad_phase
-    import collision.narrow_phase as narrow_phase
-
-    for module in (detect, narrow_phase, broad_phase):
-        monkeypatch.setattr(module, "host", counting_host)
-    monkeypatch.setattr(detect.ContactDetection, "ccd_detect", counting_detect)
-    _run("rigid_toss", 30, "replayed")
+    monkeypatch.setattr(detect.ContactDetection, counted, counting_round)
+    _run("rigid_toss", 30, response)
     rounds = np.array(rounds)
     assert len(rounds) > 100
     on_device = rounds[rounds[:, 1] == 0, 0]

@@ -16,7 +16,6 @@ ball is caught and slowed by the cloth and ends on the floor (cloth_rigid).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
@@ -89,12 +88,8 @@ def test_2000_steps_no_penetration_bounded_energy_bit_identical_rerun(name, tmp_
     def observe(step, state, info):
         at_rerun["contacts"] = at_rerun.get("contacts", 0) + len(info["contacts"]["points"])
         if step == RERUN_STEPS:
-            digest = hashlib.sha256()
-            arrays = state.numpy()
-            for key in ("particle_q", "particle_qd", "body_q", "body_qd"):
-                digest.update(np.ascontiguousarray(arrays[key]).tobytes())
-            at_rerun.update(state_sha256=digest.hexdigest(), energy_final=info["kinetic"] + info["potential"],
-                            total_contacts=at_rerun["contacts"])
+            at_rerun.update(state_sha256=sim_common.state_sha256(state.numpy()),
+                            energy_final=info["kinetic"] + info["potential"], total_contacts=at_rerun["contacts"])
 
     summary, final = sim_common.simulate(
         module.build, sim_common.default_args(steps=LONG_STEPS), None, name=name, progress=False, observer=observe)

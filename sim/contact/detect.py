@@ -190,16 +190,15 @@ class ContactDetection:
             elif found > COVER_DENSE_CANDIDATES:
                 self.cover_scale = max(self.cover_scale - 1, 0)
 
-    def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0,
-                    read: bool = True) -> int | None:
+    def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> None:
         """Puts the narrow phase's hits (:attr:`CandidateNarrowPhase.hits`) and the vertex-plane
         ones into :attr:`hits` in ascending pair order (the order of the contacts is then the same
         whatever the broad phase's candidate order or the device's thread schedule);
         ``max_distance >= 0`` drops mesh pairs not nearer than it (the proximity pass),
         ``time_mode`` as :func:`kernels.contact_set.gather_hits_kernel`'s. ``mesh_count`` and
         ``plane_count`` bound their hits (their numbers are in the device counters): the launches
-        run over :attr:`bound` rows and read the counts on the device. Returns the number of hits
-        kept (:meth:`read_counts`), or None with ``read=False``."""
+        run over :attr:`bound` rows and read the counts on the device, where the number of hits kept
+        stays (:meth:`read_counts` brings it to the host)."""
         H, nb, launch = self.hits, self.narrow.hits, self.launches.launch
         bound = self.bound = mesh_count + plane_count
         H.reserve(bound)
@@ -216,7 +215,6 @@ class ContactDetection:
             H.keys, H.order, self._kept_counter, self._mesh_counter, nb["kind"], nb["pairs"], nb["vertices"],
             nb["time"], nb["source"], self._plane_pairs_w, self._plane_time_w, time_mode, self.n_vertices,
             H.kind, H.pair, H.vertices, H.detected, H.source, H.plane, H.row, self._repeated_counter])
-        return self.read_counts()[_KEPT] if read else None
 
     def _exact(self, mesh_bound: int, plane_bound: int) -> tuple[int, int]:
         """The pass's mesh and plane hits where the counts can be peeked at without a
@@ -285,11 +283,11 @@ class ContactDetection:
         else:
             cs.fresh = False
 
-    def plane_hits(self, x_w, delta: float | None, read: bool = True) -> int:
+    def plane_hits(self, x_w, delta: float | None) -> int:
         """Vertex-plane hits into the plane buffers: with ``delta``, the proximity pairs at the
         start positions ``x_w`` (which also keeps their plane distances); else the crossings of
-        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Returns their number
-        (in the device counter), or with ``read=False`` a bound on it."""
+        the paths from the start to ``x_w`` (:mod:`kernels.contact_set`). Their number stays in the
+        device counter; returns a bound on it."""
         n = len(self.plane_vertex_ids)
         zero(self._plane_counter)
         if not (n and len(self.planes)):
@@ -302,7 +300,7 @@ class ContactDetection:
             self.launches.launch("plane_crossing", plane_crossing_kernel, n, [
                 x_w, self._plane_ids_w, self.replay.planes, len(self.planes), self._plane_d0_w,
                 self._plane_counter, self._plane_pairs_w, self._plane_time_w])
-        return int(host(self._plane_counter)[0]) if read else n * len(self.planes)
+        return n * len(self.planes)
 
     def proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
         """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
@@ -339,11 +337,11 @@ class ContactDetection:
         reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
         # slack: the exact test follows
         mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius, read=False)
-        planes = self.plane_hits(x0_w, delta, read=False)
+        planes = self.plane_hits(x0_w, delta)
         mesh, planes = self._exact(mesh, planes)
         if not mesh + planes:
             return 0
-        self.sorted_hits(mesh, planes, 0, reach, read=False)
+        self.sorted_hits(mesh, planes, 0, reach)
         return int(self.read_counts()[_KEPT]) if read else self.bound
 
     def ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
@@ -371,7 +369,7 @@ class ContactDetection:
             mesh = self.narrow.ccd_count_device(x0_w, x1_w, same_start, self._uncovered, self._beyond_reach)
             if mesh is None:  # no cover to test on the device
                 break
-            planes = self.plane_hits(x1_w, None, read=False)
+            planes = self.plane_hits(x1_w, None)
             peeked = peek(self.counts)
             if peeked is not None:
                 if peeked[_UNCOVERED]:
@@ -400,7 +398,7 @@ class ContactDetection:
         """:meth:`ccd_detect` with the cover tested on the host (the end positions read)."""
         self.host_tested_rounds += 1
         x1 = host(x1_w)[: self.n_vertices + 1]
-        if not self.ccd_hits(x0, x1, x1_w, time_mode, read=False):
+        if not self.ccd_hits(x0, x1, x1_w, time_mode):
             return None
         if decide is not None:
             decide()
@@ -413,33 +411,30 @@ class ContactDetection:
         H = self.hits
         self.approach(x0_w, x1_w, lever0_w, (H.toi, H.weights, H.normals), vm, vel, times, h, read=False)
 
-    def ccd_hits(self, x0, x1, x1_w, time_mode: int, read: bool = True) -> int:
+    def ccd_hits(self, x0, x1, x1_w, time_mode: int) -> int:
         """The hits of the straight paths ``x0 -> x1`` (V + 1, 3) (``x1_w`` its device array):
         vertex-face, edge-edge (broad + narrow phase at zero thickness) and vertex-plane (a
         movable vertex ends behind a plane, moving inwards) into :attr:`hits` in pair order
         (``time_mode``: :func:`kernels.contact_set.gather_hits_kernel`'s), each matched to its row
-        in the contact set. Returns their number, or with ``read=False`` a bound on it (0: none;
-        the counts stay on the device)."""
+        in the contact set. Returns a bound on their number (0: none; the counts stay on the
+        device)."""
         n = self.n_vertices
-        mesh = self.narrow.ccd_count(x0[:n], x1[:n], 0.0, read=read)
-        planes = self.plane_hits(x1_w, None, read=read)
-        if not read:
-            mesh, planes = self._exact(mesh, planes)
+        mesh = self.narrow.ccd_count(x0[:n], x1[:n], 0.0, read=False)
+        mesh, planes = self._exact(mesh, self.plane_hits(x1_w, None))
         if not mesh + planes:
             return 0
-        count = self.sort_and_match(mesh, planes, time_mode, read)
-        return count if read else self.bound
+        self.sort_and_match(mesh, planes, time_mode)
+        return self.bound
 
-    def sort_and_match(self, mesh: int, planes: int, time_mode: int, read: bool = False) -> int | None:
+    def sort_and_match(self, mesh: int, planes: int, time_mode: int) -> None:
         """:meth:`sorted_hits` of a CCD pass (``mesh``, ``planes``: bounds on its hits), each hit
         matched to its row in the contact set (:func:`kernels.contact_set.match_contacts_kernel`,
-        over the set's capacity: its count may be on the device only). Returns the number of
-        hits with ``read``, else None."""
+        over the set's capacity: its count may be on the device only); the counts stay on the
+        device."""
         cs, H = self.contacts, self.hits
-        count = self.sorted_hits(mesh, planes, time_mode, read=read)
+        self.sorted_hits(mesh, planes, time_mode)
         self.launches.launch("match", match_contacts_kernel, cs.capacity,
                               [cs.counter, cs.kind, cs.pair, self.key_base, H.keys, self._kept_counter, H.row])
-        return count
 
     def approach(self, x0_w, x1_w, lever_w, geometry, vm, vel, times, h: float, read: bool = True) -> int | None:
         """Whether each of :attr:`hits` approaches (``geometry``: its (toi [s], weights, normals)
