@@ -91,6 +91,9 @@ def zero(arr: wp.array) -> wp.array:
     return arr
 
 
+_zero_array = zero  # for Arena.take, whose argument ``zero`` hides the function
+
+
 class Staging:
     """Named Warp arrays that grow to the largest size asked for and are then reused.
 
@@ -157,7 +160,7 @@ class Arena:
         if out is None:
             out = self._views[view_key] = pool[k][:n, :n] if square else pool[k][:n]
         if zero:
-            out.zero_()
+            _zero_array(out)
         return out
 
     def mark(self) -> dict:

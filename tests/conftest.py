@@ -3,20 +3,42 @@ array a tape read is written before its backward pass.
 
 Two workers compiling the same module into one cache folder can race; each worker (and every
 scene subprocess it starts, which inherits the environment) gets its own folder under
-``.warp_cache/`` in the repository. Set before any test module imports warp.
+``.warp_cache/`` in the repository. Set before any test module imports warp. In a run with
+workers (``-n``), the controller first compiles the kernel modules into ``.warp_cache/seed`` (both
+configurations of ``tests/warm_kernels.py`` at once), and each worker starts from a copy of it.
 """
 
 import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-os.environ["WARP_CACHE_PATH"] = str(Path(__file__).resolve().parent.parent / ".warp_cache" / _worker)
+_CACHES = Path(__file__).resolve().parent.parent / ".warp_cache"
+_SEED = _CACHES / "seed"
+os.environ["WARP_CACHE_PATH"] = str(_CACHES / _worker)
+if _worker != "main" and _SEED.is_dir():
+    shutil.copytree(_SEED, _CACHES / _worker, dirs_exist_ok=True)
 
 import warp as wp  # noqa: E402  (after the cache path)
 
 # every taped launch marks the arrays it reads; a later write to one of them by a launch or a
 # copy (which would corrupt the backward pass silently) is an error (pyproject's filterwarnings)
 wp.config.verify_autograd_array_access = True
+
+
+def pytest_configure(config):
+    """In the controller of a run with workers: the kernel modules compiled into the seed cache
+    (:mod:`tests.warm_kernels`, its two configurations in parallel) before the workers start."""
+    if _worker != "main" or not getattr(config.option, "numprocesses", None):
+        return
+    script = Path(__file__).resolve().parent / "warm_kernels.py"
+    warmers = [subprocess.Popen([sys.executable, str(script), str(_SEED), configuration])
+               for configuration in ("verify", "plain")]
+    failed = [w.args[-1] for w in warmers if w.wait() != 0]
+    if failed:
+        raise RuntimeError(f"compiling the kernel modules ({', '.join(failed)}) into {_SEED} failed")
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -4,7 +4,7 @@ Per scene, one in-process run (no recording) of :data:`LONG_STEPS` steps at the 
 (dt 1/60 s, 8 substeps), with the independent checker of :mod:`sim.penetration` evaluated on
 every frame's end state (``penetrations`` is the worst frame, ``penetration_frames`` the count of
 frames with any). Then the scene's first :data:`RERUN_STEPS` steps (its landing and first contacts
-included) again through ``python -m scenes NAME --steps 400 --out X.rrd`` in a fresh process: its
+included) again through ``python -m scenes NAME --steps 200 --out X.rrd`` in a fresh process: its
 final state must hash to the same SHA-256 as the long run's state at that step (bit for bit: the
 response is sequential and every reduction has a fixed order), and the recording must read back
 with ``rerun.chunk.RrdReader`` holding every frame.
@@ -29,9 +29,9 @@ from scenes import cloth_drop, cloth_rigid, rigid_toss, sim_common
 
 REPO = Path(__file__).resolve().parents[1]
 LONG_STEPS = 2000
-RERUN_STEPS = 400
-"""The fresh-process rerun's length (6.7 s of simulated time): past every scene's first contacts
-(asserted) and into its settling, at a fifth of the long run's cost."""
+RERUN_STEPS = 200
+"""The fresh-process rerun's length (3.3 s of simulated time): past every scene's first contacts
+(asserted), at a tenth of the long run's cost."""
 SCENES = {"cloth_drop": cloth_drop, "rigid_toss": rigid_toss, "cloth_rigid": cloth_rigid}
 ENERGY_GROWTH_LIMIT = 1.01
 """Total energy may never exceed its initial value by more than 1 %: gravity, springs and
