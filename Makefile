@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum | cut -d' ' -f1)
-# Each pytest worker gets its own Warp kernel cache (see tests/conftest.py); the 25 slowest tests are listed at the end.
+# The pytest workers share one Warp kernel cache (see tests/conftest.py); the 25 slowest tests are listed at the end.
 PYTEST_ARGS ?= -n 2 --dist loadgroup --durations=25
 
 .PHONY: demo test bench fuzz install docs clean

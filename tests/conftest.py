@@ -1,44 +1,25 @@
-"""Test-session set-up: a Warp kernel cache per pytest-xdist worker, and Warp's check that no
-array a tape read is written before its backward pass.
+"""Test-session set-up: one Warp kernel cache for the test run, and Warp's check that no array a
+tape read is written before its backward pass.
 
-Two workers compiling the same module into one cache folder can race; each worker (and every
-scene subprocess it starts, which inherits the environment) gets its own folder under
-``.warp_cache/`` in the repository. Set before any test module imports warp. In a run with
-workers (``-n``), the controller first compiles the kernel modules into ``.warp_cache/seed`` (both
-configurations of ``tests/warm_kernels.py`` at once), and each worker starts from a copy of it.
+The pytest-xdist workers and the scene subprocesses they start (which inherit the environment)
+share one kernel cache, ``.warp_cache/tests`` in the repository, so that a module one of them
+compiled is loaded by the others instead of compiled again (about a minute of CPU per
+configuration of the project's kernels; the subprocesses compile without the tape check, which is
+part of a module's hash). Sharing is safe: Warp 1.19 compiles into a folder of its own process
+and renames it into the cache, and ``kernels/variants.py`` writes its generated sources by atomic
+renames. Set before any test module imports warp.
 """
 
 import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
-_worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-_CACHES = Path(__file__).resolve().parent.parent / ".warp_cache"
-_SEED = _CACHES / "seed"
-os.environ["WARP_CACHE_PATH"] = str(_CACHES / _worker)
-if _worker != "main" and _SEED.is_dir():
-    shutil.copytree(_SEED, _CACHES / _worker, dirs_exist_ok=True)
+os.environ["WARP_CACHE_PATH"] = str(Path(__file__).resolve().parent.parent / ".warp_cache" / "tests")
 
 import warp as wp  # noqa: E402  (after the cache path)
 
 # every taped launch marks the arrays it reads; a later write to one of them by a launch or a
 # copy (which would corrupt the backward pass silently) is an error (pyproject's filterwarnings)
 wp.config.verify_autograd_array_access = True
-
-
-def pytest_configure(config):
-    """In the controller of a run with workers: the kernel modules compiled into the seed cache
-    (:mod:`tests.warm_kernels`, its two configurations in parallel) before the workers start."""
-    if _worker != "main" or not getattr(config.option, "numprocesses", None):
-        return
-    script = Path(__file__).resolve().parent / "warm_kernels.py"
-    warmers = [subprocess.Popen([sys.executable, str(script), str(_SEED), configuration])
-               for configuration in ("verify", "plain")]
-    failed = [w.args[-1] for w in warmers if w.wait() != 0]
-    if failed:
-        raise RuntimeError(f"compiling the kernel modules ({', '.join(failed)}) into {_SEED} failed")
 
 
 def pytest_collection_modifyitems(session, config, items):
