@@ -185,7 +185,8 @@ class CandidateNarrowPhase:
         xa, xb = self.broad_phase.positions
         return buffers, xa, xb
 
-    def _reserve(self, n: int) -> None:
+    def reserve(self, n: int) -> None:
+        """Room for the hits of ``n`` candidates in the output buffers."""
         if self._pairs.shape[0] < n:
             n = grown_capacity(n, self._pairs.shape[0], 64)
             dev = self.device
@@ -203,7 +204,7 @@ class CandidateNarrowPhase:
         of hits (unsorted, on the device: :attr:`hits`), or with ``read=False`` the number of
         candidates tested, a bound on it (the count stays in the device counter)."""
         vf, n_vf, ee, n_ee = buffers
-        self._reserve(n_vf + n_ee)
+        self.reserve(n_vf + n_ee)
         zero(self._counter)
         if n_vf + n_ee:
             launch(vf, n_vf, ee, n_ee)
@@ -298,20 +299,19 @@ class CandidateNarrowPhase:
         instead. Returns the number of candidates tested (a bound on the hits, which are counted
         in the counter), or None when no cover serves (no cover, another query since, or the
         float32 narrow phase, which rounds the positions on the host)."""
-        c = self._cover
-        if self._float32 or c is None or c[4] != self.broad_phase.query_count:
+        chosen = self._device_candidates(same_start)
+        if chosen is None:
             return None
+        buffers, use_reach = chosen
+        c = self._cover
         n = len(c[1])
         if x0.shape[0] < n or x1.shape[0] < n:
             raise ValueError(f"x0, x1: expected at least {n} rows (the mesh's vertices), got {x0.shape[0]}, {x1.shape[0]}")
-        r = self._reach
-        use_reach = bool(same_start) and r is not None and r[0] is c
         zero(uncovered)
         zero(beyond_reach)
         self._launches.launch("cover_check", cover_check_kernel, n, [
             x0, x1, self._cover_lo, self._cover_hi, self.COVER_SAFETY * c[3], self._radius, int(use_reach),
             uncovered, beyond_reach])
-        buffers = r[3] if use_reach else c[0]
         self.reuses += 1
         self.reach_calls += use_reach
         self.tested += buffers[1] + buffers[3]
@@ -323,6 +323,22 @@ class CandidateNarrowPhase:
                                    self._vertices])
 
         return self._run(buffers, launch, read=False)
+
+    def device_bound(self, same_start: bool) -> int | None:
+        """The candidates :meth:`ccd_count_device` would test (a bound on its hits), or None when
+        no cover serves."""
+        chosen = self._device_candidates(same_start)
+        return None if chosen is None else chosen[0][1] + chosen[0][3]
+
+    def _device_candidates(self, same_start: bool):
+        """(candidate buffers, whether they are :meth:`near`'s kept pairs) of
+        :meth:`ccd_count_device`, or None when no cover serves."""
+        c = self._cover
+        if self._float32 or c is None or c[4] != self.broad_phase.query_count:
+            return None
+        r = self._reach
+        use_reach = bool(same_start) and r is not None and r[0] is c
+        return (r[3] if use_reach else c[0]), use_reach
 
     def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).

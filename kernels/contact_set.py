@@ -533,3 +533,25 @@ def add_contacts_kernel(
     count[0] = wp.int32(n)
 
 
+
+
+@wp.kernel(enable_backward=False)
+def round_control_kernel(counts: wp.array(dtype=wp.int32), kept: int, repeated: int, approaching: int,
+                         uncovered: int, beyond_reach: int, round_index: int, events: int, go: int,
+                         max_hits: int, max_iterations: int):
+    """The continue test of a Gauss-Seidel CCD round run on the device (launched with ``dim=1``
+    after the round's detection and decisions): ``counts[go]`` becomes 1, ``counts[round_index]``
+    moves to the next round and ``counts[events]`` adds the approaching hits when the round's hits
+    approach, its motion stayed in the broad-phase cover and within the reach radii, no pair came
+    twice, the hits are within ``max_hits`` and the round is below ``max_iterations`` (the round's
+    contacts are then added and solved); otherwise ``counts[go]`` becomes 0 and the round is left
+    for the host (done when nothing approaches; else tested again there, or the fail-safe's). The
+    other arguments are slots of ``counts`` (:data:`sim.contact.detect.COUNT_SLOTS`)."""
+    n = counts[approaching]
+    held = counts[uncovered] == 0 and counts[beyond_reach] == 0 and counts[repeated] == 0
+    if n > 0 and held and counts[kept] <= max_hits and counts[round_index] < max_iterations:
+        counts[go] = 1
+        counts[round_index] = counts[round_index] + 1
+        counts[events] = counts[events] + n
+    else:
+        counts[go] = 0

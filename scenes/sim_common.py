@@ -238,7 +238,8 @@ def default_args(**overrides: Any) -> argparse.Namespace:
                             response=DEFAULT_RESPONSE, integrator="semi_implicit", cg_tolerance=None,
                             max_strain_step=None, contact_passes=None, thickness=None,
                             collision_rounds=DEFAULT_COLLISION_ROUNDS, ccd_precision="float64",
-                            ccd_tolerance_scale=1.0, root_max_iterations=None, root_tolerance=None)
+                            ccd_tolerance_scale=1.0, root_max_iterations=None, root_tolerance=None,
+                            capture_rounds=False)
     for k, v in overrides.items():
         setattr(ns, k, v)
     return ns
@@ -426,7 +427,8 @@ def simulate(
     integrator = make_integrator(model, kind, **options)
     handler = ImpulseCollisionHandler(
         model, max_iterations=int(getattr(args, "collision_rounds", DEFAULT_COLLISION_ROUNDS)),
-        differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed", ccd_options=ccd_options(args))
+        differentiable=getattr(args, "response", DEFAULT_RESPONSE) == "replayed", ccd_options=ccd_options(args),
+        capture_rounds=bool(getattr(args, "capture_rounds", False)))
     gatherer = ContactGatherer(handler)
     integrator.collision_handler = gatherer
     checker = PenetrationChecker(model)
@@ -542,6 +544,8 @@ def simulate(
         "failsafe_count": int(handler.failsafe_count),
         "state_sha256": state_sha256(final),
     }
+    if handler.capture_rounds:  # graphs of CCD rounds recorded and launched
+        summary["captured_round_graphs"] = int(handler.captured_round_graphs)
     return summary, final
 
 

@@ -145,6 +145,19 @@ def test_host_reads_tiny(tmp_path):
     assert len(json.load(open(tmp_path / "host_reads.json"))["rows"]) == 6
 
 
+def test_capture_tiny(tmp_path):
+    """benchmarks/capture.py times a scene with its CCD rounds launched and as graphs, and finds
+    the two runs bit-identical (every scene: tests/test_capture.py)."""
+    from benchmarks import capture
+
+    rows = capture.main(["--steps", "3", "--repeats", "1", "--scenes", "rigid_toss", "--out", str(tmp_path / "c")])
+    assert [r["scene"] for r in rows] == ["rigid_toss"]
+    assert all(r["bit_identical"] and len(r["captured_ms"]) == 1 for r in rows)
+    assert "| rigid_toss |" in _read(tmp_path / "c")
+    with pytest.raises(SystemExit):
+        capture.main(["--scenes", "nope"])
+
+
 def test_tunnel_seeds_tiny_and_resumes(tmp_path, monkeypatch):
     """One seed, two iterations: the report counts it; a second call finds it done (no rerun)."""
     from benchmarks import tunnel_seeds

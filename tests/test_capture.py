@@ -9,7 +9,7 @@ import pytest
 import warp as wp
 
 from core.capture import Graphs, Launch, Zero, run_stages
-from scenes.sim_common import default_args, simulate
+from scenes.sim_common import build_model, default_args, simulate
 from sim.builder import ModelBuilder
 from sim.integrators.semi_implicit import SemiImplicitIntegrator
 
@@ -225,3 +225,25 @@ def test_no_graph_runs_under_a_tape_even_without_gradients():
         integrator.step(s0, s1, 1.0 / 60.0, 4)
     assert integrator.graphs.replayed == before
     assert len(tape.launches) >= 4 * 3  # springs, particles and the planes' response per substep
+
+
+@pytest.mark.parametrize("name", ["cloth_drop", "rigid_toss", "cloth_rigid"])
+def test_gauss_seidel_rounds_as_graphs_end_in_the_launches_bits(name):
+    """``capture_rounds``: each substep's CCD rounds after its first contact recorded as one
+    graph (``wp.capture_while`` over the rounds, ``wp.capture_if`` over each round's growth and
+    solve) and launched. The scene run ends in the same bits, with the same approaching hits, as
+    the rounds launched one by one on the host, and the graphs carried the rounds."""
+    from sim.contact.response import ImpulseCollisionHandler
+
+    module = importlib.import_module(f"scenes.{name}")
+    steps = 25 if name == "cloth_drop" else 40  # past the first contacts of each scene
+    captured, _ = simulate(module.build, default_args(steps=steps, response="gauss-seidel", capture_rounds=True),
+                           None, name=name, progress=False)
+    plain, _ = simulate(module.build, default_args(steps=steps, response="gauss-seidel"), None, name=name,
+                        progress=False)
+    assert captured["captured_round_graphs"] > 0
+    assert "captured_round_graphs" not in plain
+    assert captured["contacts"] == plain["contacts"] > 0
+    assert captured["state_sha256"] == plain["state_sha256"]
+    with pytest.raises(ValueError, match="capture_rounds=True needs differentiable=False"):
+        ImpulseCollisionHandler(build_model(module.build, default_args()), differentiable=True, capture_rounds=True)

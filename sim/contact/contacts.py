@@ -45,15 +45,17 @@ class _Rows:
         return {name: capacity for name, _ in self.FIELDS}
 
     def reserve(self, rows: int) -> None:
-        """At least ``rows`` rows of room, the first :attr:`count` rows kept."""
+        """At least ``rows`` rows of room, the first :attr:`count` rows kept (every row, while the
+        count is on the device only: ``fresh`` False)."""
         if rows <= self.capacity:
             return
         capacity = grown_capacity(rows, self.capacity, 64)
+        kept = self.count if getattr(self, "fresh", True) else self.capacity
         for (name, dtype), size in zip(self.FIELDS, self._sizes(capacity).values()):
             new = wp.zeros(size, dtype=dtype, device=self.device)
             old = getattr(self, name, None)
-            if old is not None and self.count:
-                wp.copy(new, old, count=min(self.count, old.shape[0]))
+            if old is not None and kept:
+                wp.copy(new, old, count=min(kept, old.shape[0]))
             setattr(self, name, new)
         self.capacity = capacity
 

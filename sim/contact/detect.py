@@ -11,11 +11,11 @@ import warp as wp
 from collision.broad_phase import BroadPhase
 from collision.ccd import ONES3
 from collision.narrow_phase import CandidateNarrowPhase
-from core.buffers import host, peek, zero
+from core.buffers import host, peek, upload, zero
 from kernels.contact_geometry import contact_geometry_kernel
 from kernels.contact_set import (add_contacts_kernel, approach_kernel, gather_hits_kernel, hit_keys_kernel,
                                  match_contacts_kernel, plane_crossing_kernel, plane_proximity_kernel,
-                                 sort_hit_keys_kernel)
+                                 round_control_kernel, sort_hit_keys_kernel)
 from kernels.pose import pose_positions_kernel, pose_substep_kernel
 from sim.contact.contacts import ContactLimitExceeded, Hits
 from sim.model import State
@@ -26,12 +26,16 @@ from sim.contact.tuning import (APPROACH_EPS, CCD_REACH_MIN_CANDIDATES, CCD_REAC
                                 TOUCHING_RELATIVE)
 
 
-COUNT_SLOTS = ("mesh", "plane", "kept", "repeated", "approaching", "contacts", "uncovered", "beyond_reach")
+COUNT_SLOTS = ("mesh", "plane", "kept", "repeated", "approaching", "contacts", "uncovered", "beyond_reach",
+               "round", "events", "go")
 """The slots of :attr:`ContactDetection.counts`: the narrow phase's hits, the vertex-plane hits,
 the hits kept in pair order, the pairs found twice, the approaching hits, the contact set's
-rows, and the vertices whose motion left the broad-phase cover's room or their reach radius
-(:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`)."""
-_MESH, _PLANE, _KEPT, _REPEATED, _APPROACHING, _CONTACTS, _UNCOVERED, _BEYOND_REACH = range(len(COUNT_SLOTS))
+rows, the vertices whose motion left the broad-phase cover's room or their reach radius
+(:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`), and the state of CCD
+rounds run on the device (:meth:`ContactDetection.round_control`): the round, the approaching
+hits added so far, and whether the next round runs."""
+(_MESH, _PLANE, _KEPT, _REPEATED, _APPROACHING, _CONTACTS, _UNCOVERED, _BEYOND_REACH, ROUND, EVENTS,
+ _GO) = range(len(COUNT_SLOTS))
 
 
 class ContactDetection:
@@ -88,7 +92,7 @@ class ContactDetection:
         # one read (read_counts); each kernel gets the one-element view of its count
         self.counts = wp.zeros(len(COUNT_SLOTS), dtype=wp.int32, device=dev)
         (self._mesh_counter, self._plane_counter, self._kept_counter, self._repeated_counter,
-         self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach) = (
+         self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach, _, _, self.go) = (
             self.counts[i:i + 1] for i in range(len(COUNT_SLOTS)))
         self.bound = 0  # the last sorted pass's bound on its hits (the launches' dimension)
         self.host_tested_rounds = 0  # CCD rounds whose cover was tested on the host (statistics)
@@ -230,7 +234,10 @@ class ContactDetection:
         """The device counts (:data:`COUNT_SLOTS`) in one host read, kept as the hits' and the
         contact set's counts, checked: a pair found twice in one pass, or more hits than
         :attr:`max_hits`, raise."""
-        counts = np.array(host(self.counts))
+        return self.accept_counts(np.array(host(self.counts)))
+
+    def accept_counts(self, counts: np.ndarray) -> np.ndarray:
+        """:meth:`read_counts` of the counts ``counts`` already read."""
         if counts[_REPEATED]:
             raise RuntimeError("collision detection returned a primitive pair twice in one pass "
                                "(the broad phase's candidates must be distinct pairs)")
@@ -379,20 +386,68 @@ class ContactDetection:
                 mesh, planes = int(peeked[_MESH]), int(peeked[_PLANE])
                 if not mesh + planes:
                     return None
-            if mesh + planes:
-                self.sort_and_match(mesh, planes, time_mode)
-                if decide is not None:
-                    decide()
-            else:  # no candidate: counts of no hit, read with the cover's test
-                zero(self._kept_counter)
-                zero(self._repeated_counter)
-                zero(self._approach_counter)
+            self._match_and_decide(mesh, planes, time_mode, decide)
             counts = self.read_counts()
             if counts[_UNCOVERED]:
                 break
             if not counts[_BEYOND_REACH]:
                 return counts
         return self._host_tested_round(x0, x1_w, time_mode, decide)
+
+    def _match_and_decide(self, mesh: int, planes: int, time_mode: int, decide) -> None:
+        """:meth:`sort_and_match` of a pass with ``mesh`` and ``planes`` bounds on its hits, then
+        ``decide()``; without a candidate, the counts of no hit (all left on the device)."""
+        if mesh + planes:
+            self.sort_and_match(mesh, planes, time_mode)
+            if decide is not None:
+                decide()
+        else:
+            zero(self._kept_counter)
+            zero(self._repeated_counter)
+            zero(self._approach_counter)
+
+    def device_round_bound(self) -> int | None:
+        """A bound on the hits of one CCD round detected on the device (:meth:`device_round`),
+        with the buffers they fill grown to it (so that a graph capture of rounds allocates
+        nothing), or None when no broad-phase cover serves such a round."""
+        mesh = self.narrow.device_bound(True)
+        if mesh is None:
+            return None
+        self.narrow.reserve(mesh)
+        bound = mesh + (len(self.plane_vertex_ids) * len(self.planes) if len(self.plane_vertex_ids) else 0)
+        self.hits.reserve(bound)
+        self.staging.empty("hit_push", max(bound, 1), wp.float64)
+        return bound
+
+    def start_rounds(self, round_index: int) -> None:
+        """Sets the device rounds' state (:meth:`round_control`): round ``round_index``, no
+        approaching hit added yet, the next round runs."""
+        state = np.array([round_index, 0, 1], dtype=np.int32)
+        upload(self.counts[ROUND:], state)
+
+    def device_round(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float, max_iterations: int) -> None:
+        """One Gauss-Seidel CCD round wholly on the device (no host read, so a graph capture can
+        record it): :meth:`ccd_round`'s detection and decisions over the broad-phase cover's
+        candidates, whose test stays on the device, then :meth:`round_control` with the
+        ``max_iterations`` rounds the response allows."""
+        mesh = self.narrow.ccd_count_device(x0_w, x1_w, True, self._uncovered, self._beyond_reach)
+        self._match_and_decide(mesh, self.plane_hits(x1_w, None), 2,
+                               lambda: self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h))
+        self.launches.launch("round_control", round_control_kernel, 1, [
+            self.counts, _KEPT, _REPEATED, _APPROACHING, _UNCOVERED, _BEYOND_REACH, ROUND, EVENTS, _GO,
+            self.max_hits, int(max_iterations)])
+
+    def round_outcome(self) -> tuple[np.ndarray, bool]:
+        """After device rounds: their counts (one read) and whether the last round ended the
+        substep's rounds (its cover's test held and nothing approaches); else that round is to be
+        run again on the host (which tests the cover first, as :meth:`ccd_detect` does, then
+        checks the counts). A round whose cover's test held is checked here
+        (:meth:`accept_counts`: it raises for a pair found twice or too many hits)."""
+        counts = np.array(host(self.counts))
+        if counts[_UNCOVERED] or counts[_BEYOND_REACH]:
+            return counts, False
+        self.accept_counts(counts)
+        return counts, not counts[_APPROACHING]
 
     def _host_tested_round(self, x0, x1_w, time_mode: int, decide) -> np.ndarray | None:
         """:meth:`ccd_detect` with the cover tested on the host (the end positions read)."""

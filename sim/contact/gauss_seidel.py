@@ -4,13 +4,12 @@ stepping loop allocates no Warp array)."""
 
 from __future__ import annotations
 
-import itertools
-
 import warp as wp
 
 from core.buffers import copy_rows
 from core.tape import paused_tape
 from kernels.integrate import planned_substep_kernel
+from sim.contact.detect import EVENTS, ROUND
 from sim.contact.record import ContactRecord
 from sim.contact.zones import ImpactZones
 from sim.model import State
@@ -62,7 +61,15 @@ class GaussSeidelSubstep:
         # no zone grown)
         failsafe = False
         planned = None
-        for iteration in itertools.count():
+        device_rounds = hd.capture_rounds  # until a graph of rounds leaves a round to the host
+        iteration = -1
+        while True:
+            iteration += 1
+            if vel is not None and zones is None and device_rounds:
+                iteration, planned = self.device_rounds(iteration, x0_w, lever0_w, vm, vel, inv_inertia_w)
+                if planned is not None:
+                    break
+                device_rounds = False  # that round runs again here, tested on the host
             if vel is not None:  # a contact or a zone changed the prediction
                 planned = self.plan(state_in, state_pred, vel, zone_flags, h)
                 x1_w, times = planned[2], planned[3]
@@ -102,6 +109,51 @@ class GaussSeidelSubstep:
             body_q=bq1_w if B else state_pred.body_q,
             body_qd=vel[1] if B else state_pred.body_qd,
         )
+
+    def device_rounds(self, iteration: int, x0_w, lever0_w, vm, vel, inv_inertia_w):
+        """CCD rounds from round ``iteration`` on, recorded as one Warp graph and replayed
+        (``wp.capture_while`` over the rounds, ``wp.capture_if`` over each round's growth and
+        solve): each round is :meth:`plan`, the detection and decisions of
+        :meth:`sim.contact.detect.ContactDetection.device_round`, then, while its continue test
+        holds, the approaching hits added and Gauss-Seidel solved; the same launches as the
+        host's rounds over the same bounds, so the same bits. The host reads the counts once,
+        after the graph.
+
+        Returns:
+            (the round the graph stopped at, the last plan (as :meth:`plan`'s) when that round
+            ended the rounds, else None: the caller runs that round again on the host, which
+            tests the cover there or starts the fail-safe). Without a cover that serves rounds
+            on the device: (``iteration``, None), nothing run.
+        """
+        hd, D, h = self.handler, self.handler.detect, self.h
+        bound = D.device_round_bound()
+        if bound is None:
+            return iteration, None
+        cs = hd.contact_set
+        # room for every round's growth before the capture (each round adds at most its hits):
+        # a capture must not reallocate (and copy) an array its recorded launches use
+        cs.reserve(cs.count + (hd.max_iterations - iteration) * bound)
+        hd.reserve_solve()
+        D.start_rounds(iteration)
+        last_plan = []
+
+        def grow_and_solve():
+            D.add_hits(False, 0, read=False)
+            hd.gauss_seidel(vel, lever0_w, inv_inertia_w)
+
+        def one_round():
+            last_plan[:] = [self.plan(self.state_in, self.state_pred, vel, None, h)]
+            x1_w, times = last_plan[0][2], last_plan[0][3]
+            D.device_round(x0_w, x1_w, lever0_w, vm, vel, times, h, hd.max_iterations)
+            wp.capture_if(D.go, on_true=grow_and_solve)
+
+        with wp.ScopedCapture(device=hd.model.device) as capture:
+            wp.capture_while(D.go, one_round)
+        wp.capture_launch(capture.graph)
+        hd.captured_round_graphs += 1
+        counts, done = D.round_outcome()
+        hd.ccd_events += int(counts[EVENTS])
+        return int(counts[ROUND]), (last_plan[0] if done else None)
 
     def plan(self, state_in: State, state_pred: State, vel, zone_flags, h: float):
         """End positions of the substep ``h`` [s] for the contact set's earliest contact time per

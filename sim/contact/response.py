@@ -156,6 +156,11 @@ class ImpulseCollisionHandler(CollisionStage):
             ``tolerance`` (:class:`collision.narrow_phase.CandidateNarrowPhase`); None: the float64
             kernels as written. The replay recomputes each contact's ``t*`` with the float64
             root solver (and its mollified derivative) either way.
+        capture_rounds: with ``differentiable=False``, run each substep's CCD rounds after its
+            first contact as one recorded Warp graph (``wp.capture_while``;
+            :meth:`sim.contact.gauss_seidel.GaussSeidelSubstep.device_rounds`): the same bits, one
+            host read for all the rounds instead of one per round. Off by default: on the CPU the
+            recording costs more than it saves (``benchmarks/capture.py``).
 
     Attributes (of the last call, for logging and tests):
         last_contacts: (C, 3) contact points [m] (side A's closest point at ``t*``) of the
@@ -172,8 +177,16 @@ class ImpulseCollisionHandler(CollisionStage):
     """
 
     def __init__(self, model: Model, max_iterations: int = 8, differentiable: bool = True,
-                 max_derivative: float = DEFAULT_MAX_DERIVATIVE, ccd_options: dict | None = None):
+                 max_derivative: float = DEFAULT_MAX_DERIVATIVE, ccd_options: dict | None = None,
+                 capture_rounds: bool = False):
+        if not isinstance(capture_rounds, bool):
+            raise ValueError(f"capture_rounds must be True or False, got {capture_rounds!r}")
+        if capture_rounds and differentiable:
+            raise ValueError("capture_rounds=True needs differentiable=False: the replayed response's rounds "
+                             "decide on the host")
         self.model = model
+        self.capture_rounds = capture_rounds
+        self.captured_round_graphs = 0  # graphs of CCD rounds recorded and launched (capture_rounds)
         self.ccd_options = check_ccd_options(ccd_options)
         self.max_iterations = int(max_iterations)
         self.differentiable = bool(differentiable)
@@ -368,10 +381,10 @@ class ImpulseCollisionHandler(CollisionStage):
         updates the velocities ``vel`` (device buffers) and the set's accumulated impulses in
         place. ``lever`` (V + 1,) and ``inv_inertia_w`` (B,) (at least one row): the vertices'
         lever arms and the bodies' world inverse inertia tensors at the start pose."""
-        cs, staging, R = self.contact_set, self.staging, self.replay
-        rows = cs.capacity  # the set's count may be on the device only (a CCD round's growth)
+        cs, R = self.contact_set, self.replay
         tol = SOLVER_TOLERANCE * SEPARATION_RATE * self.separation_speed
-        sweeps = self._sweeps = staging.empty("sweeps", 1, wp.int32)
+        *scratch, sweeps = self.reserve_solve()
+        self._sweeps = sweeps
         # without particles (bodies) no contact has a particle (rigid) vertex, so the kernel
         # never writes the shared stand-in passed for their velocities
         self.launches.launch("solve", solve_contacts_kernel, 1, [
@@ -379,12 +392,17 @@ class ImpulseCollisionHandler(CollisionStage):
             lever, 0,  # indexed by vertex
             self._particle_inv_mass_w, self._body_inv_mass_w, inv_inertia_w,
             float(self.model.friction), int(SOLVER_ITERATIONS), float(tol),
-            # scratch: the contacts' constants over the sweeps
-            staging.empty("contact_mass", rows, wp.float64), staging.empty("contact_particles", rows, wp.vec4i),
-            staging.empty("contact_bodies", rows, wp.vec2i), staging.empty("contact_body_weight", rows, wp.vec2d),
-            staging.empty("contact_lever", 2 * rows, wp.vec3d),
-            vel[0], vel[1], cs.normal_impulse, cs.friction_impulse, sweeps,
+            *scratch, vel[0], vel[1], cs.normal_impulse, cs.friction_impulse, sweeps,
         ])
+
+    def reserve_solve(self) -> tuple:
+        """The scratch arrays of :meth:`gauss_seidel` for the contact set's capacity (its count
+        may be on the device only, after a CCD round's growth): the contacts' constants over the
+        sweeps (mass, particles, bodies, body weights, lever arms) and the sweep counter."""
+        rows, empty = self.contact_set.capacity, self.staging.empty
+        return (empty("contact_mass", rows, wp.float64), empty("contact_particles", rows, wp.vec4i),
+                empty("contact_bodies", rows, wp.vec2i), empty("contact_body_weight", rows, wp.vec2d),
+                empty("contact_lever", 2 * rows, wp.vec3d), empty("sweeps", 1, wp.int32))
 
     @property
     def last_sweeps(self) -> int:
