@@ -533,8 +533,6 @@ def add_contacts_kernel(
     count[0] = wp.int32(n)
 
 
-
-
 @wp.kernel(enable_backward=False)
 def round_control_kernel(counts: wp.array(dtype=wp.int32), kept: int, repeated: int, approaching: int,
                          uncovered: int, beyond_reach: int, round_index: int, events: int, go: int,

@@ -2,12 +2,13 @@
 tape read is written before its backward pass.
 
 The pytest-xdist workers and the scene subprocesses they start (which inherit the environment)
-share one kernel cache, ``.warp_cache/tests`` in the repository, so that a module one of them
-compiled is loaded by the others instead of compiled again (about a minute of CPU per
-configuration of the project's kernels; the subprocesses compile without the tape check, which is
-part of a module's hash). Sharing is safe: Warp 1.19 compiles into a folder of its own process
-and renames it into the cache, and ``kernels/variants.py`` writes its generated sources by atomic
-renames. Set before any test module imports warp.
+share one kernel cache, ``.warp_cache/tests`` in the repository. The subprocesses compile the
+kernels without the tape check (part of a module's hash) and load what another of them compiled
+(about a minute of CPU for the project's kernels); the workers, with the check on, compile every
+module they use once each (Warp 1.19 skips the cache in that mode). Sharing is safe: Warp
+compiles into a folder of its own process and renames it into the cache, and
+``kernels/variants.py`` writes its generated sources by atomic renames. Set before any test
+module imports warp.
 """
 
 import os

@@ -231,8 +231,8 @@ def test_no_graph_runs_under_a_tape_even_without_gradients():
 def test_gauss_seidel_rounds_as_graphs_end_in_the_launches_bits(name):
     """``capture_rounds``: each substep's CCD rounds after its first contact recorded as one
     graph (``wp.capture_while`` over the rounds, ``wp.capture_if`` over each round's growth and
-    solve) and launched. The scene run ends in the same bits, with the same approaching hits, as
-    the rounds launched one by one on the host, and the graphs carried the rounds."""
+    solve) and launched. The scene run ends in the same bits, with the same contacts, as the
+    rounds launched one by one on the host, and graphs were launched."""
     from sim.contact.response import ImpulseCollisionHandler
 
     module = importlib.import_module(f"scenes.{name}")

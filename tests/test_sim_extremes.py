@@ -196,8 +196,8 @@ def test_two_cloth_sheets_stack_only_with_self_collision(self_collision):
     assert ("self_collision" in model.components) == self_collision
     tris = model.tri_indices.numpy().reshape(-1, 3)
     worst = 0
-    # 20 steps: without self-collision the sheets first cross in step 6 (80 crossing pairs), and
-    # with it the stack then rests on the box for 14 steps
+    # 20 steps: without self-collision the sheets first cross in step 6 (80 crossing pairs); with
+    # it the upper sheet lands on the lower one, which lands on the box
     for frame, state, report in _frames(model, steps=20):
         assert report.count == 0, (frame, report.summary())
         worst = max(worst, _sheets_crossing(state.particle_q.numpy(), tris, n_tri_a))

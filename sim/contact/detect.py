@@ -32,7 +32,7 @@ COUNT_SLOTS = ("mesh", "plane", "kept", "repeated", "approaching", "contacts", "
 the hits kept in pair order, the pairs found twice, the approaching hits, the contact set's
 rows, the vertices whose motion left the broad-phase cover's room or their reach radius
 (:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`), and the state of CCD
-rounds run on the device (:meth:`ContactDetection.round_control`): the round, the approaching
+rounds run on the device (:func:`kernels.contact_set.round_control_kernel`): the round, the approaching
 hits added so far, and whether the next round runs."""
 (_MESH, _PLANE, _KEPT, _REPEATED, _APPROACHING, _CONTACTS, _UNCOVERED, _BEYOND_REACH, ROUND, EVENTS,
  _GO) = range(len(COUNT_SLOTS))
@@ -420,16 +420,17 @@ class ContactDetection:
         return bound
 
     def start_rounds(self, round_index: int) -> None:
-        """Sets the device rounds' state (:meth:`round_control`): round ``round_index``, no
+        """Sets the device rounds' state (:func:`kernels.contact_set.round_control_kernel`): round ``round_index``, no
         approaching hit added yet, the next round runs."""
         state = np.array([round_index, 0, 1], dtype=np.int32)
         upload(self.counts[ROUND:], state)
 
     def device_round(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float, max_iterations: int) -> None:
         """One Gauss-Seidel CCD round wholly on the device (no host read, so a graph capture can
-        record it): :meth:`ccd_round`'s detection and decisions over the broad-phase cover's
-        candidates, whose test stays on the device, then :meth:`round_control` with the
-        ``max_iterations`` rounds the response allows."""
+        record it): :meth:`ccd_round`'s detection and decisions over the pairs the proximity pass
+        kept for the rounds (else the broad-phase cover's candidates), whose test stays on the
+        device, then the continue test (:func:`kernels.contact_set.round_control_kernel`) with
+        the ``max_iterations`` rounds the response allows."""
         mesh = self.narrow.ccd_count_device(x0_w, x1_w, True, self._uncovered, self._beyond_reach)
         self._match_and_decide(mesh, self.plane_hits(x1_w, None), 2,
                                lambda: self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h))

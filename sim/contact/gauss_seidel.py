@@ -115,9 +115,11 @@ class GaussSeidelSubstep:
         (``wp.capture_while`` over the rounds, ``wp.capture_if`` over each round's growth and
         solve): each round is :meth:`plan`, the detection and decisions of
         :meth:`sim.contact.detect.ContactDetection.device_round`, then, while its continue test
-        holds, the approaching hits added and Gauss-Seidel solved; the same launches as the
-        host's rounds over the same bounds, so the same bits. The host reads the counts once,
-        after the graph.
+        holds, the approaching hits added and Gauss-Seidel solved: the same kernels on the same
+        data as the host's rounds, so the same bits (``tests/test_capture.py``). The host reads
+        the counts once, after the graph. The narrow phase's statistics (``reuses``,
+        ``reach_calls``, ``tested``) count the recorded round once, not each round the graph
+        runs.
 
         Returns:
             (the round the graph stopped at, the last plan (as :meth:`plan`'s) when that round
@@ -132,7 +134,9 @@ class GaussSeidelSubstep:
         cs = hd.contact_set
         # room for every round's growth before the capture (each round adds at most its hits):
         # a capture must not reallocate (and copy) an array its recorded launches use
-        cs.reserve(cs.count + (hd.max_iterations - iteration) * bound)
+        # (the set's count, after a round's growth on the host, may be on the device only: its
+        # capacity bounds it)
+        cs.reserve((cs.count if cs.fresh else cs.capacity) + (hd.max_iterations - iteration) * bound)
         hd.reserve_solve()
         D.start_rounds(iteration)
         last_plan = []

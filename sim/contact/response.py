@@ -277,7 +277,8 @@ class ImpulseCollisionHandler(CollisionStage):
 
     # ------------------------------------------------------------------------------------------
 
-    _COUNTERS = ("failsafe_count", "ccd_events", "active_set_repairs", "unsettled_active_sets")
+    _COUNTERS = ("failsafe_count", "ccd_events", "active_set_repairs", "unsettled_active_sets",
+                 "captured_round_graphs")
 
     @property
     def last_contacts(self) -> np.ndarray:
