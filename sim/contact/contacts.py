@@ -44,13 +44,21 @@ class _Rows:
     def _sizes(self, capacity: int) -> dict:
         return {name: capacity for name, _ in self.FIELDS}
 
+    fresh = True  # whether count is the device's count (see Contacts)
+
+    @property
+    def rows_bound(self) -> int:
+        """A host bound on the rows held: :attr:`count`, or the capacity while the count is on
+        the device only (``fresh`` False)."""
+        return self.count if self.fresh else self.capacity
+
     def reserve(self, rows: int) -> None:
         """At least ``rows`` rows of room, the first :attr:`count` rows kept (every row, while the
         count is on the device only: ``fresh`` False)."""
         if rows <= self.capacity:
             return
         capacity = grown_capacity(rows, self.capacity, 64)
-        kept = self.count if getattr(self, "fresh", True) else self.capacity
+        kept = self.rows_bound
         for (name, dtype), size in zip(self.FIELDS, self._sizes(capacity).values()):
             new = wp.zeros(size, dtype=dtype, device=self.device)
             old = getattr(self, name, None)

@@ -265,7 +265,7 @@ class ContactDetection:
             float(self.model.restitution), float(SEPARATION_RATE), float(TOUCHING_RELATIVE),
             float(self.max_derivative), 0, R.flat_keys, R.flat_opposites, R.flat_key_base, 0, R.particle_inv_mass,
             R.body_inv_mass, R.half_substep_gravity, H.toi, H.weights, H.normals, H.targets,
-            self.staging.empty("hit_push", max(self.bound, 1), wp.float64)])
+            self._push_scratch(self.bound)])
 
     def add_hits(self, all_new: bool, approaching: int, geometry=None, merge=None, read: bool = True) -> None:
         """Grows the contact set by :attr:`hits` (``all_new``: every hit, into the empty set;
@@ -414,10 +414,14 @@ class ContactDetection:
         if mesh is None:
             return None
         self.narrow.reserve(mesh)
-        bound = mesh + (len(self.plane_vertex_ids) * len(self.planes) if len(self.plane_vertex_ids) else 0)
+        bound = mesh + len(self.plane_vertex_ids) * len(self.planes)  # plane_hits' bound
         self.hits.reserve(bound)
-        self.staging.empty("hit_push", max(bound, 1), wp.float64)
+        self._push_scratch(bound)
         return bound
+
+    def _push_scratch(self, rows: int) -> wp.array:
+        """The scratch of :meth:`hit_geometry`'s pushes for ``rows`` hits."""
+        return self.staging.empty("hit_push", max(rows, 1), wp.float64)
 
     def start_rounds(self, round_index: int) -> None:
         """Sets the device rounds' state (:func:`kernels.contact_set.round_control_kernel`): round ``round_index``, no

@@ -134,9 +134,7 @@ class GaussSeidelSubstep:
         cs = hd.contact_set
         # room for every round's growth before the capture (each round adds at most its hits):
         # a capture must not reallocate (and copy) an array its recorded launches use
-        # (the set's count, after a round's growth on the host, may be on the device only: its
-        # capacity bounds it)
-        cs.reserve((cs.count if cs.fresh else cs.capacity) + (hd.max_iterations - iteration) * bound)
+        cs.reserve(cs.rows_bound + (hd.max_iterations - iteration) * bound)
         hd.reserve_solve()
         D.start_rounds(iteration)
         last_plan = []
