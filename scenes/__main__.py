@@ -30,25 +30,16 @@ import argparse
 import contextlib
 import json
 import os
-import signal
 import sys
-import threading
 import time
 import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from scenes import interrupts
 from scenes.registry import describe, jsonable, load_scene, positive_int, scene_names
 
 PROG = "tunnelsim" if Path(sys.argv[0]).name == "tunnelsim" else "python -m scenes"
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C (the frames so far are kept), with exit code 143."""
-
-
-def _terminate(signum, frame):
-    raise Terminated()
 
 
 def version() -> str:
@@ -189,18 +180,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))
     start = time.perf_counter()
-    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
     try:
-        with _stdout_to_stderr():
+        with interrupts.handled(), _stdout_to_stderr():
             with log:
                 summary = module.run(args, log)
                 summary = {**summary, "wall_time_s": round(time.perf_counter() - start, 3), "out": str(out)}
                 text = json.dumps(jsonable(summary), allow_nan=False)
                 log.log_text("/summary", text)
     except KeyboardInterrupt as exc:
-        print(f"{'terminated' if isinstance(exc, Terminated) else 'interrupted'}; {_what_was_written(log, out)}",
+        print(f"{'terminated' if isinstance(exc, interrupts.Terminated) else 'interrupted'}; {_what_was_written(log, out)}",
               file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return 143 if isinstance(exc, interrupts.Terminated) else 130
     except Exception as exc:
         from scenes.sim_common import SimulationDiverged
 
@@ -210,9 +200,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         print(f"{PROG} {name}: failed; {_what_was_written(log, out)}", file=sys.stderr)
         return 1
-    finally:
-        if previous is not None or threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
     print(text, flush=True)
     return 0
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import contextlib
 
+from scenes import interrupts
+
 
 class GuardedAdam:
     """Adam on one tensor ``v`` (requires grad) with the guarded second phase.
@@ -197,6 +199,7 @@ def progress(description: str, total: int):
     bar = tqdm(total=total, desc=description, unit="it", file=sys.stderr, disable=None, leave=False)
 
     def callback(iteration: int, history) -> None:
+        interrupts.raise_pending()
         bar.update(max(iteration + 1 - bar.n, 0))
         losses = history.get("loss") if isinstance(history, dict) else None
         if losses:

@@ -34,6 +34,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scenes import interrupts
+
 if TYPE_CHECKING:  # torch is imported lazily so that the CLI's --list/--help/usage errors stay fast
     import torch
 
@@ -460,7 +462,10 @@ def run_scene(
     log.send_blueprint(time_series_blueprint({s.name: views_for_start(root, s.name, slots) for s in starts}))
     with tqdm(total=2 * (args.iters + 1), desc=name, unit="it", file=sys.stderr,
               disable=None, leave=False) as bar:
-        tick = lambda _k: bar.update(1)  # noqa: E731
+        def tick(_k: int) -> None:
+            interrupts.raise_pending()
+            bar.update(1)
+
         prop = run_proposed(starts, args.iters, args.lr, args.max_derivative, t_max=t_max, progress=tick)
         base = run_baseline(starts, args.iters, args.lr, progress=tick)
 

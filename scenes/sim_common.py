@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from scenes import interrupts
 from scenes.registry import (
     add_max_derivative_argument,
     non_negative_float,
@@ -462,6 +463,7 @@ def simulate(
     bar = tqdm(total=steps, desc=name, unit="step", file=sys.stderr, disable=None if progress else True, leave=False)
     try:
         for k in range(steps):
+            interrupts.raise_pending()
             t0 = time.perf_counter()
             gatherer.reset()
             try:

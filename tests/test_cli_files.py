@@ -112,6 +112,43 @@ def test_sigterm_keeps_the_frames_so_far_like_ctrl_c(tmp_path):
     assert rows.get("/status") == 1 and rows.get("/metrics/energy/total", 0) >= 1
 
 
+def test_a_signal_whose_exception_a_destructor_swallowed_still_ends_the_run(tmp_path, monkeypatch, capsys):
+    """Python drops an exception raised inside ``__del__`` ("Exception ignored in ..."): a SIGTERM
+    that lands while a Warp array is freed used to be lost, and the run went on. The noted signal
+    ends the run at the next step instead: exit 143, the 4 frames so far kept."""
+    from sim.integrators.semi_implicit import SemiImplicitIntegrator
+
+    class FreedDuringTheSignal:
+        def __del__(self):
+            signal.raise_signal(signal.SIGTERM)  # the handler runs here, and its exception is dropped
+
+    real_step = SemiImplicitIntegrator.step
+    calls = {"n": 0}
+
+    def step(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            FreedDuringTheSignal()
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(SemiImplicitIntegrator, "step", step)
+    dropped = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda info: dropped.append(info.exc_type.__name__))
+    out = tmp_path / "run.rrd"
+    assert main(["rigid_toss", "--out", str(out), "--steps", "50"]) == 143
+    err = capsys.readouterr().err
+    assert dropped == ["Terminated"]  # the destructor swallowed it once
+    assert f"terminated; the frames recorded so far are in {tmp_path / 'run.partial.rrd'}" in err
+    assert calls["n"] == 4
+    from rerun.chunk import RrdReader
+
+    rows = {}
+    for chunk in RrdReader(tmp_path / "run.partial.rrd").stream().to_chunks():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    assert rows.get("/metrics/energy/total") == 4
+    assert signal.getsignal(signal.SIGTERM) is not signal.getsignal(signal.SIGINT)  # handlers put back
+
+
 def test_the_tunnel_plot_draws_the_baseline_flat_from_a_miss():
     """The baseline from a miss has no finite loss at all: its panel shows a flat, explained line
     at the shot's lifted loss instead of an empty axis."""
