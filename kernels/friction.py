@@ -7,7 +7,7 @@ pass.
 import warp as wp
 
 from kernels.pose import VERTEX_PARTICLE
-from kernels.response import contact_response, relative_velocity, unit_perpendicular
+from kernels.response import contact_response, contact_responses, relative_velocity, unit_perpendicular
 
 
 @wp.func
@@ -57,38 +57,42 @@ def sticking_delassus_kernel(
     A sliding contact (``slip[c]`` the unit direction its friction opposes) keeps its normal
     row; its tangential rows say that its friction is Coulomb's, ``j_t = -mu j_n s``:
     ``j_a + mu (s . t_a) j_n = 0`` per tangent ``t_a``, scaled by its own tangential response
-    ``t_a . K_cc t_a`` so that the rows are commensurate with the velocity rows."""
-    r, u = wp.tid()
-    c = unknown_contact[r // 3]
-    d = unknown_contact[u // 3]
-    axis = r % 3
+    ``t_a . K_cc t_a`` so that the rows are commensurate with the velocity rows.
+
+    Launched over (n, n) for n unknown contacts: thread (i, j) writes the 3x3 block of rows
+    ``3 i ..`` and columns ``3 j ..``."""
+    i, j = wp.tid()
+    c = unknown_contact[i]
+    d = unknown_contact[j]
     s = slip[c]
     zero = wp.float64(0.0)
-    if axis != 0 and wp.length_sq(s) > zero:
-        value = zero
-        if r // 3 == u // 3:
-            t = contact_axis(normals[c], axis)
-            scale = wp.dot(t, contact_response(
-                c, c, t, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
-                particle_inv_mass, body_inv_mass, body_inv_inertia,
-            ))
-            if u % 3 == axis:
-                value = scale
-            elif u % 3 == 0:
-                value = scale * friction * wp.dot(s, t)
-        matrix[r, u] = value
-        return
-    resp = contact_response(
-        c, d, contact_axis(normals[d], u % 3), pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
-        rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
+    sliding = wp.length_sq(s) > zero
+    # row b of the block: the response at c to a unit impulse along axis b of contact d
+    block = contact_responses(
+        c, d, contact_axis(normals[d], 0), contact_axis(normals[d], 1), contact_axis(normals[d], 2), pairs, weights,
+        vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass,
+        body_inv_inertia,
     )
-    value = wp.dot(contact_axis(normals[c], axis), resp)
-    if r == u:
-        scale = regularization
-        if axis != 0:
-            scale = regularization * tangent_weight[c]
-        value = value * (wp.float64(1.0) + scale)
-    matrix[r, u] = value
+    for axis in range(3):
+        t = contact_axis(normals[c], axis)
+        for column in range(3):
+            value = zero
+            if axis != 0 and sliding:
+                if i == j:
+                    # the diagonal block: d is c, so row ``axis`` is the response to t itself
+                    scale = wp.dot(t, block[axis])
+                    if column == axis:
+                        value = scale
+                    elif column == 0:
+                        value = scale * friction * wp.dot(s, t)
+            else:
+                value = wp.dot(t, block[column])
+                if i == j and column == axis:
+                    scale = regularization
+                    if axis != 0:
+                        scale = regularization * tangent_weight[c]
+                    value = value * (wp.float64(1.0) + scale)
+            matrix[3 * i + axis, 3 * j + column] = value
 
 
 @wp.kernel

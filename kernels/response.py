@@ -9,6 +9,70 @@ from kernels.pose import VERTEX_PARTICLE, vertex_velocity
 
 
 @wp.func
+def contact_responses(
+    c: int,
+    d: int,
+    g0: wp.vec3d,
+    g1: wp.vec3d,
+    g2: wp.vec3d,
+    pairs: wp.array(dtype=wp.vec4i),
+    weights: wp.array(dtype=wp.vec4d),
+    vertex_type: wp.array(dtype=wp.int32),
+    vertex_owner: wp.array(dtype=wp.int32),
+    side_body: wp.array(dtype=wp.vec2i),
+    side_weight: wp.array(dtype=wp.vec2d),
+    rho_a: wp.array(dtype=wp.vec3d),
+    rho_b: wp.array(dtype=wp.vec3d),
+    particle_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_mass: wp.array(dtype=wp.float64),
+    body_inv_inertia: wp.array(dtype=wp.mat33d),
+) -> wp.mat33d:
+    """Changes of the relative velocity of contact ``c`` caused by impulses ``g0``, ``g1``,
+    ``g2`` at contact ``d`` (the Delassus operator's 3x3 block times each), as the rows of the
+    result: the pairs' shared particles and bodies are looked up once for the three."""
+    zero = wp.float64(0.0)
+    out0 = wp.vec3d(zero, zero, zero)
+    out1 = wp.vec3d(zero, zero, zero)
+    out2 = wp.vec3d(zero, zero, zero)
+    qc = pairs[c]
+    qd = pairs[d]
+    wc = weights[c]
+    wd = weights[d]
+    for k in range(4):
+        if vertex_type[qc[k]] == VERTEX_PARTICLE:
+            for l in range(4):
+                if vertex_type[qd[l]] == VERTEX_PARTICLE and vertex_owner[qc[k]] == vertex_owner[qd[l]]:
+                    shared = wc[k] * wd[l] * particle_inv_mass[vertex_owner[qc[k]]]
+                    out0 = out0 + shared * g0
+                    out1 = out1 + shared * g1
+                    out2 = out2 + shared * g2
+    bc = side_body[c]
+    bd = side_body[d]
+    wsc = side_weight[c]
+    wsd = side_weight[d]
+    for s in range(2):
+        body = bc[s]
+        if body >= 0:
+            rc = rho_a[c]
+            if s == 1:
+                rc = rho_b[c]
+            for t in range(2):
+                if bd[t] == body:
+                    rd = rho_a[d]
+                    if t == 1:
+                        rd = rho_b[d]
+                    linear = wsc[s] * wsd[t] * body_inv_mass[body]
+                    inertia = body_inv_inertia[body]
+                    out0 = out0 + linear * g0
+                    out0 = out0 - wp.cross(rc, inertia * wp.cross(rd, g0))
+                    out1 = out1 + linear * g1
+                    out1 = out1 - wp.cross(rc, inertia * wp.cross(rd, g1))
+                    out2 = out2 + linear * g2
+                    out2 = out2 - wp.cross(rc, inertia * wp.cross(rd, g2))
+    return wp.matrix_from_rows(out0, out1, out2)
+
+
+@wp.func
 def contact_response(
     c: int,
     d: int,
@@ -26,36 +90,11 @@ def contact_response(
     body_inv_inertia: wp.array(dtype=wp.mat33d),
 ) -> wp.vec3d:
     """Change of the relative velocity of contact ``c`` caused by an impulse ``g`` at contact
-    ``d`` (the Delassus operator's 3x3 block times ``g``)."""
-    zero = wp.float64(0.0)
-    out = wp.vec3d(zero, zero, zero)
-    qc = pairs[c]
-    qd = pairs[d]
-    wc = weights[c]
-    wd = weights[d]
-    for k in range(4):
-        if vertex_type[qc[k]] == VERTEX_PARTICLE:
-            for l in range(4):
-                if vertex_type[qd[l]] == VERTEX_PARTICLE and vertex_owner[qc[k]] == vertex_owner[qd[l]]:
-                    out = out + (wc[k] * wd[l] * particle_inv_mass[vertex_owner[qc[k]]]) * g
-    bc = side_body[c]
-    bd = side_body[d]
-    wsc = side_weight[c]
-    wsd = side_weight[d]
-    for s in range(2):
-        body = bc[s]
-        if body >= 0:
-            rc = rho_a[c]
-            if s == 1:
-                rc = rho_b[c]
-            for t in range(2):
-                if bd[t] == body:
-                    rd = rho_a[d]
-                    if t == 1:
-                        rd = rho_b[d]
-                    out = out + (wsc[s] * wsd[t] * body_inv_mass[body]) * g
-                    out = out - wp.cross(rc, body_inv_inertia[body] * wp.cross(rd, g))
-    return out
+    ``d`` (the Delassus operator's 3x3 block times ``g``): row 0 of :func:`contact_responses`."""
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    block = contact_responses(c, d, g, zero, zero, pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
+                              rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+    return block[0]
 
 
 @wp.kernel

@@ -59,8 +59,8 @@ class FrictionSplit:
         with paused_tape():
             r.launch(tangent_weights_kernel, dim=1, inputs=[c, self.cu, loads, normals], outputs=[tangent_weight],
                       device=r.device)
-        matrix = r.zeros(0, wp.float64, shape=(m, m))
-        r.launch(sticking_delassus_kernel, dim=(m, m),
+        matrix = r.take((m, m), wp.float64, zero=False)  # every entry written
+        r.launch(sticking_delassus_kernel, dim=(self.n_u, self.n_u),
                   inputs=[self.uc, self.pairs_w, self.weights, normals, r.vertex_type, r.vertex_owner, *self.sides,
                           *self.masses, wp.float64(REGULARIZATION), tangent_weight, slip, self.mu],
                   outputs=[matrix], device=r.device)

@@ -383,7 +383,7 @@ class ContactReplay:
         if not n_u:
             return vm_p, vm_b, self.zeros(c, wp.vec3d), pushed(vm_p, vm_b)
         self.largest_system = max(self.largest_system, n_u)
-        matrix = self.zeros(0, wp.float64, shape=(n_u, n_u))
+        matrix = self.take((n_u, n_u), wp.float64, zero=False)  # every entry written
         self.launch(delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, normals, wp.float64(0.0), self.vertex_type, self.vertex_owner,
                           *sides, *masses, wp.float64(REGULARIZATION)],
@@ -470,7 +470,7 @@ class ContactReplay:
                           self.or_empty(vp, self.empty_vec), self.or_empty(vb, self.empty_twist)],
                   outputs=[rhs], device=self.device)
         for regularization in (REGULARIZATION, PUSH_REGULARIZATION):
-            matrix = self.zeros(0, wp.float64, shape=(n, n))
+            matrix = self.take((n, n), wp.float64, zero=False)  # every entry written
             self.launch(delassus_kernel, dim=(n, n),
                       inputs=[uc, pairs_w, weights, normals, normals, wp.float64(0.0), self.vertex_type,
                               self.vertex_owner, *sides, *masses, wp.float64(regularization)],
@@ -499,7 +499,7 @@ class ContactReplay:
                   inputs=[pairs_w, weights, normals, self.vertex_type, self.vertex_owner, lever,
                           self.or_empty(vp_n, self.empty_vec), self.or_empty(vb_n, self.empty_twist)],
                   outputs=[directions], device=self.device)
-        matrix = self.zeros(0, wp.float64, shape=(n_u, n_u))
+        matrix = self.take((n_u, n_u), wp.float64, zero=False)  # every entry written
         mu = wp.float64(self.friction)
         self.launch(delassus_kernel, dim=(n_u, n_u),
                   inputs=[uc, pairs_w, weights, normals, directions, mu, self.vertex_type, self.vertex_owner, *sides,
