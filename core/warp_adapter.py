@@ -9,7 +9,9 @@ another one):
 * whether a CPU graph capture is recording (launches must then go through Warp's own path);
 * per-array marks kept on ``wp.array`` objects (a cached host view, a "frozen copy" flag);
 * the argument structure of a recorded CPU launch (:class:`core.buffers.RecordedLaunches`
-  rewrites only the changed fields of it instead of Warp rebuilding it per launch).
+  rewrites only the changed fields of it instead of Warp rebuilding it per launch);
+* the CPU compile step, for the tests' tape check, which would otherwise compile every module
+  again in each process (:func:`reuse_cached_binaries_while_verifying`).
 """
 
 from __future__ import annotations
@@ -103,3 +105,47 @@ def cpu_launch(cmd, struct) -> None:
     """Runs a recorded CPU command's forward function on the argument structure ``struct`` of
     :func:`cpu_launch_arguments`."""
     cmd.hooks.forward(ctypes.byref(cmd.params[0]), ctypes.byref(struct))
+
+
+def reuse_cached_binaries_while_verifying() -> dict:
+    """Lets a process that checks tapes (``wp.config.verify_autograd_array_access``) load the CPU
+    binaries of its kernel cache instead of compiling them again.
+
+    Warp recompiles every module in that mode: the check needs the code generator's record of
+    which arrays each kernel reads and writes, made while the module's source is generated.
+    Generation still runs (the record is made); only the native compile, the bulk of a module's
+    build (about 45 of the 55 s of CPU a simulation scene's modules take), is replaced by a copy
+    of the binary already cached under the same module hash, which covers the source and the
+    build options, this mode included. Warp builds into ``<cache entry>_p<pid>_t<thread>`` and
+    renames the finished entry into place, so an entry's binary is complete once it exists.
+
+    Returns:
+        This process's counts, kept up to date: ``{"compiled": modules compiled, "copied":
+        modules whose binary came from the cache}``.
+    """
+    import os
+    import re
+    import shutil
+
+    import warp._src.build as _warp_build
+
+    compile_cpu = _warp_build.build_cpu
+    counts = getattr(compile_cpu, "reuse_counts", None)
+    if counts is not None:  # already in place
+        return counts
+    counts = {"compiled": 0, "copied": 0}
+
+    def build_cpu(obj_path, *args, **kwargs):
+        build_dir, name = os.path.split(obj_path)
+        entry = re.sub(r"_p\d+_t\d+$", "", build_dir)
+        cached = os.path.join(entry, name)
+        if entry != build_dir and os.path.exists(cached):
+            shutil.copyfile(cached, obj_path)
+            counts["copied"] += 1
+            return
+        compile_cpu(obj_path, *args, **kwargs)
+        counts["compiled"] += 1
+
+    build_cpu.reuse_counts = counts
+    _warp_build.build_cpu = build_cpu
+    return counts

@@ -5,7 +5,9 @@ The pytest-xdist workers and the scene subprocesses they start (which inherit th
 share one kernel cache, ``.warp_cache/tests`` in the repository. The subprocesses compile the
 kernels without the tape check (part of a module's hash) and load what another of them compiled
 (about a minute of CPU for the project's kernels); the workers, with the check on, compile every
-module they use once each (Warp 1.19 skips the cache in that mode). Sharing is safe: Warp
+module they use once each (Warp 1.19 skips the cache in that mode), unless one of them, or an
+earlier run, has already built it (:func:`core.warp_adapter.reuse_cached_binaries_while_verifying`
+copies the binary). Sharing is safe: Warp
 compiles into a folder of its own process and renames it into the cache, and
 ``kernels/variants.py`` writes its generated sources by atomic renames. Set before any test
 module imports warp.
@@ -21,6 +23,12 @@ import warp as wp  # noqa: E402  (after the cache path)
 # every taped launch marks the arrays it reads; a later write to one of them by a launch or a
 # copy (which would corrupt the backward pass silently) is an error (pyproject's filterwarnings)
 wp.config.verify_autograd_array_access = True
+
+from core.warp_adapter import reuse_cached_binaries_while_verifying  # noqa: E402
+
+# the check makes Warp compile every module again; one another worker (or an earlier run) has
+# built is copied from the cache once its source is generated
+reuse_cached_binaries_while_verifying()
 
 
 def pytest_collection_modifyitems(session, config, items):

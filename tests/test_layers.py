@@ -269,3 +269,56 @@ def test_every_package_folder_is_a_regular_package():
             if any(f.endswith(".py") for f in files) and "__init__.py" not in files:
                 missing.append(os.path.relpath(folder, REPO))
     assert not missing, f"folders without __init__.py: {missing}"
+
+
+_TAPE_CHECK_SCRIPT = '''
+import json, os, sys
+os.environ["WARP_CACHE_PATH"] = sys.argv[1]
+import warp as wp
+wp.config.quiet = True
+wp.config.verify_autograd_array_access = True
+from core.warp_adapter import reuse_cached_binaries_while_verifying
+counts = reuse_cached_binaries_while_verifying()
+
+@wp.kernel
+def double(a: wp.array(dtype=float), b: wp.array(dtype=float)):
+    i = wp.tid()
+    b[i] = 2.0 * a[i]
+
+@wp.kernel
+def overwrite(a: wp.array(dtype=float)):
+    a[wp.tid()] = 1.0
+
+a = wp.full(4, 3.0, dtype=float, requires_grad=True)
+b = wp.zeros(4, dtype=float, requires_grad=True)
+with wp.Tape():
+    wp.launch(double, 4, inputs=[a], outputs=[b])
+    wp.launch(overwrite, 4, inputs=[a])  # the check's warning goes to stderr
+print(json.dumps({"b": b.numpy().tolist(), **counts}))
+'''
+
+
+def test_the_tape_check_loads_cached_binaries_and_still_checks(tmp_path):
+    """Warp compiles every module again while it checks tapes; the tests' set-up copies the
+    binary from the cache instead (:func:`core.warp_adapter.reuse_cached_binaries_while_verifying`).
+    A second process with the same cache copies instead of compiling, its kernels compute the same
+    values, and the check still catches an array written after a taped launch read it."""
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "tape_check.py"
+    script.write_text(_TAPE_CHECK_SCRIPT)
+    env = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    runs, errors = [], []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, str(script), str(tmp_path / "cache")], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        runs.append(json.loads(proc.stdout.splitlines()[-1]))
+        errors.append(proc.stderr)
+    first, second = runs
+    assert (first["compiled"], first["copied"]) == (1, 0)
+    assert (second["compiled"], second["copied"]) == (0, 1)
+    assert first["b"] == second["b"] == [6.0] * 4
+    assert all("is being written to but has already been read from" in err for err in errors)
