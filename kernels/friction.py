@@ -69,7 +69,7 @@ def sticking_delassus_kernel(
     sliding = wp.length_sq(s) > zero
     # row b of the block: the response at c to a unit impulse along axis b of contact d
     block = contact_responses(
-        c, d, contact_axis(normals[d], 0), contact_axis(normals[d], 1), contact_axis(normals[d], 2), pairs, weights,
+        c, d, contact_axis(normals[d], 0), contact_axis(normals[d], 1), contact_axis(normals[d], 2), 3, pairs, weights,
         vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass,
         body_inv_inertia,
     )
@@ -380,10 +380,10 @@ def friction_impulses_kernel(
         vrel = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd, body_qd)
         t1 = unit_perpendicular(n)
         t2 = wp.cross(n, t1)
-        k1 = contact_response(c, c, t1, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a,
-                              rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
-        k2 = contact_response(c, c, t2, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a,
-                              rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+        tangential = contact_responses(c, c, t1, t2, n, 2, pairs, weights, vertex_type, vertex_owner, side_body,
+                                       side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+        k1 = tangential[0]
+        k2 = tangential[1]
         a11 = wp.dot(t1, k1)
         a22 = wp.dot(t2, k2)
         a12 = wp.float64(0.5) * (wp.dot(t1, k2) + wp.dot(t2, k1))

@@ -15,6 +15,7 @@ def contact_responses(
     g0: wp.vec3d,
     g1: wp.vec3d,
     g2: wp.vec3d,
+    count: int,
     pairs: wp.array(dtype=wp.vec4i),
     weights: wp.array(dtype=wp.vec4d),
     vertex_type: wp.array(dtype=wp.int32),
@@ -29,7 +30,8 @@ def contact_responses(
 ) -> wp.mat33d:
     """Changes of the relative velocity of contact ``c`` caused by impulses ``g0``, ``g1``,
     ``g2`` at contact ``d`` (the Delassus operator's 3x3 block times each), as the rows of the
-    result: the pairs' shared particles and bodies are looked up once for the three."""
+    result, for the first ``count`` (1, 2 or 3) of them (the other rows stay zero): the pairs'
+    shared particles and bodies are looked up once for all."""
     zero = wp.float64(0.0)
     out0 = wp.vec3d(zero, zero, zero)
     out1 = wp.vec3d(zero, zero, zero)
@@ -44,8 +46,10 @@ def contact_responses(
                 if vertex_type[qd[l]] == VERTEX_PARTICLE and vertex_owner[qc[k]] == vertex_owner[qd[l]]:
                     shared = wc[k] * wd[l] * particle_inv_mass[vertex_owner[qc[k]]]
                     out0 = out0 + shared * g0
-                    out1 = out1 + shared * g1
-                    out2 = out2 + shared * g2
+                    if count > 1:
+                        out1 = out1 + shared * g1
+                    if count > 2:
+                        out2 = out2 + shared * g2
     bc = side_body[c]
     bd = side_body[d]
     wsc = side_weight[c]
@@ -65,10 +69,12 @@ def contact_responses(
                     inertia = body_inv_inertia[body]
                     out0 = out0 + linear * g0
                     out0 = out0 - wp.cross(rc, inertia * wp.cross(rd, g0))
-                    out1 = out1 + linear * g1
-                    out1 = out1 - wp.cross(rc, inertia * wp.cross(rd, g1))
-                    out2 = out2 + linear * g2
-                    out2 = out2 - wp.cross(rc, inertia * wp.cross(rd, g2))
+                    if count > 1:
+                        out1 = out1 + linear * g1
+                        out1 = out1 - wp.cross(rc, inertia * wp.cross(rd, g1))
+                    if count > 2:
+                        out2 = out2 + linear * g2
+                        out2 = out2 - wp.cross(rc, inertia * wp.cross(rd, g2))
     return wp.matrix_from_rows(out0, out1, out2)
 
 
@@ -90,10 +96,10 @@ def contact_response(
     body_inv_inertia: wp.array(dtype=wp.mat33d),
 ) -> wp.vec3d:
     """Change of the relative velocity of contact ``c`` caused by an impulse ``g`` at contact
-    ``d`` (the Delassus operator's 3x3 block times ``g``): row 0 of :func:`contact_responses`."""
-    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    block = contact_responses(c, d, g, zero, zero, pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
-                              rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+    ``d`` (the Delassus operator's 3x3 block times ``g``): :func:`contact_responses` of ``g``
+    alone."""
+    block = contact_responses(c, d, g, g, g, 1, pairs, weights, vertex_type, vertex_owner, side_body,
+                              side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
     return block[0]
 
 

@@ -53,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from scenes import interrupts
 from scenes.registry import int_at_least
 
 NAME = "grazing"
@@ -174,6 +175,7 @@ def sweep(offsets=DEFAULT_OFFSETS, max_derivative: float = 1000.0, *, other_max_
     by_m = {float(m): [] for m in other_max_derivatives}
     fd = np.zeros((len(fd_steps), len(offsets)))
     for i, k in enumerate(offsets):
+        interrupts.raise_pending()
         vz = aim(k)
         g, stats = final_height(model, vz, max_derivative, grad=True)
         mollified.append(g)

@@ -17,6 +17,8 @@ from collections.abc import Iterator
 
 __all__ = ["Terminated", "handled", "raise_pending"]
 
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM, handled like Ctrl-C (the frames so far are kept), with exit code 143."""
@@ -45,17 +47,25 @@ def raise_pending() -> None:
 @contextlib.contextmanager
 def handled() -> Iterator[None]:
     """SIGINT and SIGTERM raise (and note) an interrupt inside the block; the previous handlers
-    are put back after it. Python runs signal handlers in the main thread only: in another thread
-    nothing is installed."""
-    if threading.current_thread() is not threading.main_thread():
+    are put back after it. The signals are held back while the handlers are swapped, so that one
+    arriving then is handled by the handlers of the block it arrives in, never lost half way.
+    Python runs signal handlers in the main thread only: in another thread nothing is installed;
+    inside a block already active, nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is _handler:
         yield
         return
-    previous = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    _pending.clear()
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
     try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            # a handler installed outside Python (None) cannot be put back: the default then
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
         _pending.clear()
+        previous = {s: signal.signal(s, _handler) for s in _HELD}
+        try:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one held back arrives here, inside
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+            for s, handler in previous.items():
+                # a handler installed outside Python (None) cannot be put back: the default then
+                signal.signal(s, signal.SIG_DFL if handler is None else handler)
+            _pending.clear()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one arriving after the block: the old handlers

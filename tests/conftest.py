@@ -26,8 +26,8 @@ wp.config.verify_autograd_array_access = True
 
 from core.warp_adapter import reuse_cached_binaries_while_verifying  # noqa: E402
 
-# the check makes Warp compile every module again; one another worker (or an earlier run) has
-# built is copied from the cache once its source is generated
+# the check makes Warp compile every module again: a module that another worker or an earlier
+# run has built is copied from the cache instead, once its source is generated
 reuse_cached_binaries_while_verifying()
 
 

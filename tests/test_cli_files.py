@@ -135,8 +135,10 @@ def test_a_signal_whose_exception_a_destructor_swallowed_still_ends_the_run(tmp_
     dropped = []
     monkeypatch.setattr(sys, "unraisablehook", lambda info: dropped.append(info.exc_type.__name__))
     out = tmp_path / "run.rrd"
+    handlers = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)]
     assert main(["rigid_toss", "--out", str(out), "--steps", "50"]) == 143
     err = capsys.readouterr().err
+    assert [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)] == handlers  # put back
     assert dropped == ["Terminated"]  # the destructor swallowed it once
     assert f"terminated; the frames recorded so far are in {tmp_path / 'run.partial.rrd'}" in err
     assert calls["n"] == 4
@@ -146,7 +148,6 @@ def test_a_signal_whose_exception_a_destructor_swallowed_still_ends_the_run(tmp_
     for chunk in RrdReader(tmp_path / "run.partial.rrd").stream().to_chunks():
         rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
     assert rows.get("/metrics/energy/total") == 4
-    assert signal.getsignal(signal.SIGTERM) is not signal.getsignal(signal.SIGINT)  # handlers put back
 
 
 def test_the_tunnel_plot_draws_the_baseline_flat_from_a_miss():

@@ -65,11 +65,11 @@ def test_proposed_more_than_halves_the_loss_in_four_rollouts_checked_on_a_fresh_
     """The first rollouts of the proposed method, where its path is robust to rounding.
 
     Later on, the cloth's many contacts amplify rounding the way a contact-rich forward run does:
-    moving the start velocity by 1e-12 relative changes whether seed 0 reaches the 90 % cut within
-    11 rollouts (measured: 2 of 4 such starts do, the other two turn back above 0.1 m^2 after their
-    5th rollout), while all four agree to 3 digits over the first 4 rollouts (0.307, 0.225,
-    0.164, 0.111 m^2). The 90 % cut is measured over seeds 0-4 and 40 rollouts in
-    ``benchmarks/inverse.py``; here the first 4 rollouts must cut the loss by more than half."""
+    moving the start velocity by 1e-12 relative changes whether seed 0 reaches the 90 % cut
+    (``benchmarks/results/cloth_toss_rounding.md``: 2 of 4 such starts do within 11 rollouts, the
+    other two turn back above 0.1 m^2 after their 5th), while all four are at 0.111-0.112 m^2
+    after their 4th rollout (from 0.307). The 90 % cut is measured over seeds 0-4 and 40 rollouts
+    in ``benchmarks/inverse.py``; here the first 4 rollouts must cut the loss by more than half."""
     result = C.optimise(problem, 3, "proposed")
     losses = result["history"]["loss"]
     assert all(b < a for a, b in zip(losses, losses[1:])), losses
