@@ -171,3 +171,16 @@ def test_tunnel_seeds_tiny_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(tunnel_seeds, "run_seed", None)  # a rerun would fail: the seed comes from the file
     assert tunnel_seeds.main(["--first", "0", "--last", "1", "--iters", "2", "--out", out]) == 0
     assert json.loads((tmp_path / "ts.json").read_text())["rows"] == rows and (tmp_path / "ts.md").exists()
+
+
+def test_cloth_toss_rounding_counts_the_rollouts_where_the_copies_agree():
+    """``benchmarks/cloth_toss_rounding.py``'s summary: the first rollouts on which every copy's
+    loss has the same 3 significant digits (the run itself is the benchmark's, minutes long)."""
+    from benchmarks.cloth_toss_rounding import agreeing_rollouts
+
+    rows = [{"losses": [0.3071, 0.2254, 0.1640, 0.1118, 0.111]},
+            {"losses": [0.3072, 0.2251, 0.1641, 0.1111, 0.0379]},
+            {"losses": [0.3074, 0.2252, 0.1643, 0.1112, 0.0340]}]
+    assert agreeing_rollouts(rows) == 3  # 0.112 against 0.111 at the 4th
+    assert agreeing_rollouts(rows, digits=2) == 4
+    assert agreeing_rollouts(rows[:1]) == 5
