@@ -7,7 +7,7 @@ pass.
 import warp as wp
 
 from kernels.pose import VERTEX_PARTICLE
-from kernels.response import contact_response, contact_responses, relative_velocity, unit_perpendicular
+from kernels.response import contact_responses, relative_velocity, unit_perpendicular
 
 
 @wp.func
@@ -262,8 +262,9 @@ def sliding_friction_half_kernel(
         v0 = relative_velocity(c, pairs, weights, vertex_type, vertex_owner, lever, particle_qd_start, body_qd_start)
         j = impulses[c]
         friction = j - wp.dot(j, n) * n
-        change = contact_response(c, c, friction, pairs, weights, vertex_type, vertex_owner, side_body, side_weight,
-                                  rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
+        change = contact_responses(c, c, friction, friction, friction, 1, pairs, weights, vertex_type, vertex_owner,
+                                   side_body, side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass,
+                                   body_inv_inertia)[0]
         # full below the limits, tapered to zero at twice them (no jump of the positions where a
         # contact crosses one)
         limit = wp.float64(SLIDING_HALF_STEP_LIMIT) * resting_speed

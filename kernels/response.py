@@ -78,31 +78,6 @@ def contact_responses(
     return wp.matrix_from_rows(out0, out1, out2)
 
 
-@wp.func
-def contact_response(
-    c: int,
-    d: int,
-    g: wp.vec3d,
-    pairs: wp.array(dtype=wp.vec4i),
-    weights: wp.array(dtype=wp.vec4d),
-    vertex_type: wp.array(dtype=wp.int32),
-    vertex_owner: wp.array(dtype=wp.int32),
-    side_body: wp.array(dtype=wp.vec2i),
-    side_weight: wp.array(dtype=wp.vec2d),
-    rho_a: wp.array(dtype=wp.vec3d),
-    rho_b: wp.array(dtype=wp.vec3d),
-    particle_inv_mass: wp.array(dtype=wp.float64),
-    body_inv_mass: wp.array(dtype=wp.float64),
-    body_inv_inertia: wp.array(dtype=wp.mat33d),
-) -> wp.vec3d:
-    """Change of the relative velocity of contact ``c`` caused by an impulse ``g`` at contact
-    ``d`` (the Delassus operator's 3x3 block times ``g``): :func:`contact_responses` of ``g``
-    alone."""
-    block = contact_responses(c, d, g, g, g, 1, pairs, weights, vertex_type, vertex_owner, side_body,
-                              side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia)
-    return block[0]
-
-
 @wp.kernel
 def delassus_kernel(
     unknown_contact: wp.array(dtype=wp.int32),
@@ -132,10 +107,11 @@ def delassus_kernel(
     r, u = wp.tid()
     c = unknown_contact[r]
     d = unknown_contact[u]
-    resp = contact_response(
-        c, d, normals[d] - friction * directions[d], pairs, weights, vertex_type, vertex_owner, side_body,
-        side_weight, rho_a, rho_b, particle_inv_mass, body_inv_mass, body_inv_inertia,
-    )
+    g = normals[d] - friction * directions[d]
+    resp = contact_responses(
+        c, d, g, g, g, 1, pairs, weights, vertex_type, vertex_owner, side_body, side_weight, rho_a, rho_b,
+        particle_inv_mass, body_inv_mass, body_inv_inertia,
+    )[0]
     value = wp.dot(normals[c], resp)
     if r == u:
         value = value * (wp.float64(1.0) + regularization)
