@@ -183,9 +183,17 @@ def main(argv=None):
                     help="cells per side Newton runs at (default 16 32 64; none: no Newton)")
     ap.add_argument("--scene-steps", type=int, default=300,
                     help="steps per scene in the full-step table (default 300)")
+    ap.add_argument("--alone-repeats", type=int, default=2,
+                    help="runs per setting of the replayed response run alone (default 2; 0: none)")
+    ap.add_argument("--alone", metavar="SCENE:graph|plain", default=None,
+                    help="time the replayed response of one scene alone in this process (see replayed_alone)")
     args = ap.parse_args(argv)
+    if args.alone:
+        scene, mode = args.alone.split(":")
+        print(f"{_alone_ms_per_step(scene, mode == 'graph', args.scene_steps):.3f}")
+        return
     if args.scenes_only:
-        scene_table(args.scene_steps)
+        scene_table(args.scene_steps, args.alone_repeats)
         return
     if args.sizes_only:
         size_table(args.sizes, args.size_steps, args.newton_sizes)
@@ -250,7 +258,7 @@ def main(argv=None):
     )
 
     print()
-    scene_table(args.scene_steps)
+    scene_table(args.scene_steps, args.alone_repeats)
     print()
     size_table(args.sizes, args.size_steps, args.newton_sizes)
 
@@ -296,7 +304,7 @@ class _SceneRun:
         self.states = (s1, s0)
 
 
-def scene_table(steps: int) -> None:
+def scene_table(steps: int, alone_repeats: int = 2) -> None:
     """Full steps per second of each simulation scene at its defaults (dt 1/60 s, 8 substeps):
     forces + integration + plane contacts + the mesh collision handler (proximity, CCD rounds,
     impulses, impact zones), from the first frame on (so the free-fall phase and the contact phase
@@ -362,6 +370,50 @@ def scene_table(steps: int) -> None:
           "states. contacts/step: contacts that received an impulse, summed over the substeps; fail-safe: "
           "substeps that needed rigid impact zones; collision cost: time spent in collision handling "
           "per step, in multiples of the step without it (forces + integration + plane contacts).")
+    if alone_repeats:
+        print()
+        replayed_alone(steps, alone_repeats)
+
+
+def _alone_ms_per_step(scene: str, capture: bool, steps: int) -> float:
+    """ms per step of ``scene``'s replayed response, run alone in this process after a warm-up run
+    (the first step not timed, as in :class:`_SceneRun`)."""
+    import importlib
+
+    from scenes.sim_common import build_model, default_args
+
+    args = default_args()
+    model = build_model(importlib.import_module(f"scenes.{scene}").build, args)
+    warm = _SceneRun(model, args, "replayed", capture)
+    for _ in range(min(steps, WARM_UP_STEPS)):
+        warm.step()
+    run = _SceneRun(model, args, "replayed", capture)
+    for _ in range(steps):
+        run.step()
+    return 1e3 * run.seconds / run.timed_steps
+
+
+def replayed_alone(steps: int, repeats: int = 2) -> None:
+    """The replayed response's ms/step with and without the graph, each run alone in a fresh
+    process (``repeats`` times, alternating): in the interleaved table above one run of a pair
+    can take up to about twice the other's time, and alone they agree."""
+    import subprocess
+
+    print(f"The replayed response alone: each run in a fresh process, {steps} steps from the start, "
+          f"{repeats} runs per setting alternating, ms/step:")
+    head = f"{'scene':12s} | {'with the graph':>20s} | {'launched one by one':>20s}"
+    print(f"{head}\n{'-' * len(head)}")
+    for scene in ("cloth_drop", "rigid_toss", "cloth_rigid"):
+        times = {"graph": [], "plain": []}
+        for _ in range(repeats):
+            for mode in times:
+                out = subprocess.run([sys.executable, "-m", "benchmarks.sim", "--alone", f"{scene}:{mode}",
+                                      "--scene-steps", str(steps)], cwd=os.path.dirname(HERE),
+                                     capture_output=True, text=True, check=True).stdout
+                times[mode].append(float(out.split()[-1]))
+        cells = [", ".join(f"{t:.2f}" for t in times[mode]) for mode in ("graph", "plain")]
+        print(f"{scene:12s} | {cells[0]:>20s} | {cells[1]:>20s}")
+    print("-" * len(head))
 
 
 def explicit_substeps_estimate(model, dt: float = FRAME_DT, safety: float = 1.0) -> int:
