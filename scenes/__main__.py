@@ -188,9 +188,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 text = json.dumps(jsonable(summary), allow_nan=False)
                 log.log_text("/summary", text)
     except KeyboardInterrupt as exc:
-        print(f"{'terminated' if isinstance(exc, interrupts.Terminated) else 'interrupted'}; {_what_was_written(log, out)}",
-              file=sys.stderr)
-        return 143 if isinstance(exc, interrupts.Terminated) else 130
+        terminated = isinstance(exc, interrupts.Terminated)
+        print(f"{'terminated' if terminated else 'interrupted'}; {_what_was_written(log, out)}", file=sys.stderr)
+        return 143 if terminated else 130
     except Exception as exc:
         from scenes.sim_common import SimulationDiverged
 

@@ -7,10 +7,9 @@ kernels without the tape check (part of a module's hash) and load what another o
 (about a minute of CPU for the project's kernels); the workers, with the check on, compile every
 module they use once each (Warp 1.19 skips the cache in that mode), unless one of them, or an
 earlier run, has already built it (:func:`core.warp_adapter.reuse_cached_binaries_while_verifying`
-copies the binary). Sharing is safe: Warp
-compiles into a folder of its own process and renames it into the cache, and
-``kernels/variants.py`` writes its generated sources by atomic renames. Set before any test
-module imports warp.
+copies the binary). Sharing is safe: Warp compiles into a folder of its own process and renames
+it into the cache, and ``kernels/variants.py`` writes its generated sources by atomic renames.
+Set before any test module imports warp.
 """
 
 import os

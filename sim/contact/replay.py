@@ -188,8 +188,8 @@ class ContactReplay:
             return wp.zeros(shape, dtype=dtype, device=self.device, requires_grad=grad and self._grad())
         return self._arena.take(shape, dtype, zero)
 
-    def zeros(self, n, dtype, shape=None):
-        return self.take(shape if shape is not None else n, dtype)
+    def zeros(self, n, dtype):
+        return self.take(n, dtype)
 
     def _ints(self, a, dtype=wp.int32):
         a = np.ascontiguousarray(a)
