@@ -55,11 +55,30 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
     original_round, original_host_round, original_peek = (ContactDetection.ccd_detect,
                                                           ContactDetection._host_tested_round, buffers.PEEK)
     in_round = [False]
+    in_host = [False]  # numpy() inside host() (its view of a CPU array) is that read, not another
+    context = [None]  # "start" (the substep's cover and proximity pass) or "query" (a fresh broad-phase query)
+    starts = {name: getattr(ContactDetection, name) for name in ("cover", "proximity", "proximity_hits")}
+    original_fresh = ContactDetection._fresh_cover
 
     def counting_host(arr):
         counts["host"] += inside[0] > 0
         counts["round_host"] += in_round[0]
-        return original_host(arr)
+        counts[f"{context[0]}_host"] += context[0] is not None
+        in_host[0] = True
+        try:
+            return original_host(arr)
+        finally:
+            in_host[0] = False
+
+    def in_context(name, method):
+        def counted(self, *args, **kwargs):
+            outer, context[0] = context[0], (context[0] if context[0] == "query" else name)
+            counts[name] += name == "query"
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                context[0] = outer
+        return counted
 
     def counting_round(self, *args):
         counts["rounds"] += 1
@@ -73,8 +92,11 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
         counts["host_tested"] += 1
         return original_host_round(self, *args)
 
+    core_dir = os.path.join(ROOT, "core") + os.sep
+
     def counting_numpy(self):
-        counts["numpy"] += inside[0] > 0
+        # not the buffers' own host views (core: a CPU zero fill or upload writes through one)
+        counts["numpy"] += inside[0] > 0 and not in_host[0] and not sys._getframe(1).f_code.co_filename.startswith(core_dir)
         return original_numpy(self)
 
     def counting_call(self, *args):
@@ -94,6 +116,9 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
     ImpulseCollisionHandler.__call__ = counting_call
     ContactDetection.ccd_detect = counting_round
     ContactDetection._host_tested_round = counting_host_round
+    for name, method in starts.items():
+        setattr(ContactDetection, name, in_context("start", method))
+    ContactDetection._fresh_cover = in_context("query", original_fresh)
     buffers.PEEK = False
     rows = []
     try:
@@ -112,6 +137,9 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
                              "numpy_per_substep": counts["numpy"] / substeps,
                              "ccd_rounds_per_substep": rounds / substeps if rounds else None,
                              "host_per_ccd_round": counts["round_host"] / rounds if rounds else None,
+                             "host_at_start_per_substep": counts["start_host"] / substeps,
+                             "fresh_queries_per_substep": counts["query"] / substeps,
+                             "host_per_fresh_query": counts["query_host"] / counts["query"] if counts["query"] else None,
                              "host_tested_rounds": counts["host_tested"]})
     finally:
         for m in modules:
@@ -120,6 +148,9 @@ def count_reads(steps: int) -> list[dict[str, Any]]:
         ImpulseCollisionHandler.__call__ = original_call
         ContactDetection.ccd_detect = original_round
         ContactDetection._host_tested_round = original_host_round
+        for name, method in starts.items():
+            setattr(ContactDetection, name, method)
+        ContactDetection._fresh_cover = original_fresh
         buffers.PEEK = original_peek
     return rows
 
@@ -135,15 +166,23 @@ def main(argv=None) -> list[dict[str, Any]]:
     rows = count_reads(args.steps)
     lines = [f"Host reads inside the collision stage's calls, per substep, {args.steps} steps of each scene from "
              "the start (defaults: 1/60 s, 8 substeps), on the device's path (no look at a count that a GPU would "
-             "copy). Also per CCD round's detection (for the Gauss-Seidel response the whole round; the replayed "
-             "round then reads its approaching hits' count and the grown contact set's, and its exact solves "
-             "read their sizes), and the rounds whose motion left the broad-phase cover, which the host then "
-             "tests (a fresh query).", ""]
-    lines += report.table(["scene", "response", "host() per substep", "numpy() per substep", "CCD rounds per substep",
-                           "host() per CCD detection", "rounds tested on the host"],
+             "copy): `host()` calls, and the other `numpy()` calls (not the buffers' own views, through which a CPU "
+             "zero fill or upload writes). Split into the substep's start "
+             "(the broad-phase cover's test and the proximity pass: one read, which also settles the cover; a "
+             "second when the kept cover failed and the pass ran again), each CCD round's detection (for the "
+             "Gauss-Seidel response the whole round; the replayed round then reads its approaching hits' count "
+             "and the grown contact set's, and its exact solves read their sizes and decisions), and the fresh "
+             "broad-phase queries (the positions and the candidates' counts read), with the rounds whose motion "
+             "left the cover, which the host then tests.", ""]
+    lines += report.table(["scene", "response", "host() per substep", "numpy() per substep", "host() at the start",
+                           "CCD rounds per substep", "host() per CCD detection", "fresh queries per substep",
+                           "host() per fresh query", "rounds tested on the host"],
                           [[r["scene"], r["response"], r["host_per_substep"], r["numpy_per_substep"],
+                            r["host_at_start_per_substep"],
                             "-" if r["ccd_rounds_per_substep"] is None else r["ccd_rounds_per_substep"],
                             "-" if r["host_per_ccd_round"] is None else r["host_per_ccd_round"],
+                            r["fresh_queries_per_substep"],
+                            "-" if r["host_per_fresh_query"] is None else r["host_per_fresh_query"],
                             r["host_tested_rounds"] if r["ccd_rounds_per_substep"] else "-"] for r in rows])
     report.write(args.out, "Host reads per substep", lines, {"steps": args.steps, "rows": rows})
     return rows

@@ -11,7 +11,7 @@ from collision.ccd import ONES3, as_float32, ccd_kernels, is_float32
 from core.buffers import RecordedLaunches, grown_capacity, host, read_only, upload, zero
 from core.device import init_warp
 from kernels import ccd as _k
-from kernels.broad_phase import cover_check_kernel
+from kernels.broad_phase import cover_check_kernel, reach_radius_kernel
 from kernels import variants as _variants
 from kernels.decide import pair_proximity_kernel
 
@@ -53,6 +53,8 @@ class CandidateNarrowPhase:
             run in float32; :meth:`near` (the proximity test) stays float64.
         counter: a one-element int32 device array (a view into a caller's counts, so that
             they cross to the host together) that counts the hits; default its own.
+        reach_counter: likewise a two-element int32 device array that counts the pairs
+            :meth:`near` keeps for the CCD calls that follow (vertex-face, edge-edge).
     """
 
     COVER_SAFETY = 0.45
@@ -61,7 +63,8 @@ class CandidateNarrowPhase:
     float32 boxes for its own rounding only)."""
 
     def __init__(self, broad_phase, *, precision: str = "float64", tolerance_scale: float = 1.0,
-                 max_iterations=None, tolerance=None, counter: wp.array | None = None) -> None:
+                 max_iterations=None, tolerance=None, counter: wp.array | None = None,
+                 reach_counter: wp.array | None = None) -> None:
         init_warp()
         self.settings = _variants.check_settings(precision, max_iterations, tolerance, tolerance_scale)
         self._kernels = ccd_kernels(precision, tolerance_scale, max_iterations, tolerance)
@@ -94,13 +97,15 @@ class CandidateNarrowPhase:
         self._cover = None  # (buffers, box lo, box hi, margin, broad-phase query count, scratch) of the last cover()
         # the pairs that a CCD from near()'s positions can hit (see near's motion_radius), per kind
         self._reach_pairs = [wp.empty(0, dtype=wp.vec2i, device=dev) for _ in range(2)]
-        self._reach_counter = wp.zeros(2, dtype=wp.int32, device=dev)
+        self._reach_counter = wp.zeros(2, dtype=wp.int32, device=dev) if reach_counter is None else reach_counter
+        self._reach_x = wp.empty(n, dtype=wp.vec3d, device=dev)  # near_count_covered's positions
         self._radius = wp.empty(n, dtype=wp.float64, device=dev)
         # the cover's boxes of the covered motion on the device (ccd_count_device's test)
         self._cover_lo = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._cover_hi = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._no_radius = wp.empty(0, dtype=wp.float64, device=dev)
-        self._reach = None  # (cover, positions, radii, buffers) of the last near() with motion radii
+        self._reach = None  # the _Reach of the last near() with motion radii
+        self._start_gap = 0.0  # how far the last cover()'s start positions may lie outside its boxes [m]
         self._x0_holds_reach = False  # whether the start buffer still holds those positions
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
         self.queries = 0  # broad-phase queries run (for benchmarks)
@@ -128,10 +133,46 @@ class CandidateNarrowPhase:
         x0 = np.asarray(x0, dtype=np.float64)
         x1 = np.asarray(x1, dtype=np.float64)
         c = self._cover
-        if slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count \
-                and c[1].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
-            self.kept_covers += 1
+        if self._keepable(margin, slack) and c[1].shape == x0.shape == x1.shape and self._outside(x0, x1, c) <= slack:
+            self.keep_cover(slack)
             return
+        self.query_cover(x0, x1, margin, ahead, ahead_limit)
+
+    def _keepable(self, margin: float, slack: float) -> bool:
+        """Whether :meth:`cover` may keep the current cover for a motion within ``slack`` of its
+        boxes (its margin is ``margin`` and no other query has refilled the broad phase's buffers)."""
+        c = self._cover
+        return slack > 0.0 and c is not None and c[3] == float(margin) and c[4] == self.broad_phase.query_count
+
+    def keep_cover(self, slack: float) -> None:
+        """Keeps the current cover for a motion whose ends lie within ``slack`` [m] of its boxes
+        (:meth:`cover`'s test held, on the host or on the device)."""
+        self.kept_covers += 1
+        self._start_gap = float(slack)
+
+    def cover_test_device(self, x0, x1, margin: float, slack: float, outside: wp.array) -> bool:
+        """:meth:`cover`'s test of the kept cover for the device positions ``x0``, ``x1`` (vec3d
+        arrays of at least V rows), on the device: ``outside`` (a one-element int32 device array)
+        counts the vertices with an end farther than ``slack`` outside the box of its covered
+        motion (:func:`kernels.broad_phase.cover_check_kernel`, the host test's comparisons).
+        While it stays 0 the caller keeps the cover (:meth:`keep_cover`), else it queries afresh
+        (:meth:`query_cover`). Returns False, launching nothing, when no cover can be kept
+        (:meth:`cover` would query afresh without a test)."""
+        if not self._keepable(margin, slack):
+            return False
+        c = self._cover
+        n = len(c[1])
+        if x0.shape[0] < n or x1.shape[0] < n:
+            raise ValueError(f"x0, x1: expected at least {n} rows (the mesh's vertices), got {x0.shape[0]}, {x1.shape[0]}")
+        zero(outside)
+        self._launches.launch("cover_keep", cover_check_kernel, n, [
+            x0, x1, self._cover_lo, self._cover_hi, float(slack), self._no_radius, 0, outside, outside])
+        return True
+
+    def query_cover(self, x0, x1, margin: float, ahead: float = 0.0, ahead_limit: float = 0.0) -> None:
+        """:meth:`cover`'s fresh broad-phase query of the motion ``x0 -> x1`` ((V, 3) float64 on the host)."""
+        x0 = np.asarray(x0, dtype=np.float64)
+        x1 = np.asarray(x1, dtype=np.float64)
         if ahead > 0.0 and ahead_limit > 0.0:  # the query covers the motion continued past x1
             x1 = x1 + np.clip(float(ahead) * (x1 - x0), -float(ahead_limit), float(ahead_limit))
         buffers = self.broad_phase.query_device(x0, x1, float(margin))
@@ -141,6 +182,7 @@ class CandidateNarrowPhase:
         upload(self._cover_lo, lo)
         upload(self._cover_hi, hi)
         self._cover = (buffers, lo, hi, float(margin), self.broad_phase.query_count, np.empty((3,) + x0.shape))
+        self._start_gap = 0.0
 
     def covered_candidates(self) -> int:
         """Candidate pairs of the current cover (0 without one)."""
@@ -260,8 +302,8 @@ class CandidateNarrowPhase:
         r = self._reach
         c = self._cover
         # from the positions of the last near() with motion radii, in the cover it used
-        from_near = r is not None and t == 0.0 and c is r[0] and c[4] == self.broad_phase.query_count \
-            and np.shape(x1) == c[1].shape and _same_bytes(x0, r[1])
+        from_near = r is not None and t == 0.0 and c is r.cover and c[4] == self.broad_phase.query_count \
+            and np.shape(x1) == c[1].shape and _same_bytes(x0, r.positions())
         if from_near and self._x0_holds_reach and self._outside(x1, x1, c) <= self.COVER_SAFETY * c[3]:
             # the start was covered there with less room and is on the device already: only the
             # end is checked and uploaded (_candidates' cover test otherwise)
@@ -269,10 +311,10 @@ class CandidateNarrowPhase:
             buffers, xa, xb = c[0], self._x0, upload(self._x1, x1)
         else:
             buffers, xa, xb = self._candidates(x0, x1, t, end_moves=True)  # pairs within t are candidates
-        if from_near and self._cover is r[0] and buffers is r[0][0]:
+        if from_near and self._cover is r.cover and buffers is r.cover[0]:
             step = np.subtract(x1, x0)
-            if (np.square(step) @ ONES3 <= r[2]).all():
-                buffers = r[3]
+            if (np.square(step) @ ONES3 <= r.radius_squared()).all():
+                buffers = r.buffers()
                 self.reach_calls += 1
         self.tested += buffers[1] + buffers[3]
         if self._float32:
@@ -337,8 +379,8 @@ class CandidateNarrowPhase:
         if self._float32 or c is None or c[4] != self.broad_phase.query_count:
             return None
         r = self._reach
-        use_reach = bool(same_start) and r is not None and r[0] is c
-        return (r[3] if use_reach else c[0]), use_reach
+        use_reach = bool(same_start) and r is not None and r.cover is c
+        return (r.buffers() if use_reach else c[0]), use_reach
 
     def near(self, x, max_distance: float, motion_radius=None):
         """Pairs of primitives at most ``max_distance`` [m] apart at positions ``x`` ((V, 3)).
@@ -381,12 +423,7 @@ class CandidateNarrowPhase:
         if motion_radius is not None and self._kernels is _k and self._cover is not None \
                 and buffers is self._cover[0]:
             radius = upload(self._radius, motion_radius)
-            zero(self._reach_counter)
-            for kind in (0, 1):
-                n = buffers[2 * kind + 1]
-                if self._reach_pairs[kind].shape[0] < n:
-                    self._reach_pairs[kind] = wp.empty(max(n, 2 * self._reach_pairs[kind].shape[0], 64),
-                                                       dtype=wp.vec2i, device=self.device)
+            self._reserve_reach(buffers)
 
         def launch(vf, n_vf, ee, n_ee):
             self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
@@ -397,10 +434,108 @@ class CandidateNarrowPhase:
         total = self._run(buffers, launch, read)
         if radius is not self._no_radius:
             self._x0_holds_reach = True  # the cover path of _candidates uploaded x there
-            counts = host(self._reach_counter)
-            self._reach = (self._cover, np.array(x, dtype=np.float64), np.square(motion_radius),
-                           (self._reach_pairs[0], int(counts[0]), self._reach_pairs[1], int(counts[1])))
+            self._reach = _Reach(self, np.array(x, dtype=np.float64), np.square(motion_radius))
         return total
+
+    def near_count_covered(self, x, max_distance: float, x1=None, reach_slack: float = 0.0,
+                           unbounded: wp.array | None = None, read: bool = True) -> int:
+        """:meth:`near_count` at the device positions ``x`` (a vec3d array of at least V rows)
+        that the last :meth:`cover` started from, without the host reading a position: the
+        cover's test of those positions (how far they may lie outside its boxes is known from
+        :meth:`cover`'s decision) is settled on the host. With ``x1`` (the end positions the
+        cover's motion went to, same rows) the motion radii are the step lengths plus
+        ``reach_slack`` [m] (:func:`kernels.broad_phase.reach_radius_kernel`: the host's values),
+        and ``unbounded`` (a one-element int32 device array) counts the radii that are not
+        finite: the caller then drops the kept pairs (:meth:`drop_reach`), as :meth:`near_count`
+        keeps none for them. Returns as :meth:`near_count`."""
+        max_distance = float(max_distance)
+        if not (np.isfinite(max_distance) and max_distance >= 0.0):
+            raise ValueError(f"max_distance: expected a finite distance >= 0, got {max_distance!r}")
+        c = self._cover
+        if c is None or c[4] != self.broad_phase.query_count:
+            raise RuntimeError("near_count_covered needs the cover of its positions' motion (cover() first)")
+        # the positions lie within _start_gap of the covered boxes; the test of near_count's
+        # cover path (_candidates) allows COVER_SAFETY (m - d)
+        if not (max_distance <= c[3] and self._start_gap <= self.COVER_SAFETY * (c[3] - max_distance)):
+            raise RuntimeError(f"near_count_covered: positions up to {self._start_gap} m outside the cover, which "
+                               f"serves distances up to {max_distance} m only within "
+                               f"{self.COVER_SAFETY * (c[3] - max_distance)} m")
+        n = len(c[1])
+        if x.shape[0] < n or (x1 is not None and x1.shape[0] < n):
+            raise ValueError(f"x, x1: expected at least {n} rows (the mesh's vertices)")
+        self._reach = None
+        self.reuses += 1
+        self._x0_holds_reach = False
+        buffers = c[0]
+        radius = self._no_radius
+        if unbounded is not None:
+            zero(unbounded)
+        if x1 is not None and self._kernels is _k:
+            radius = self._radius
+            self._launches.launch("reach_radius", reach_radius_kernel, n, [x, x1, float(reach_slack), radius, unbounded])
+            wp.copy(self._x0, x, count=n)
+            wp.copy(self._reach_x, x, count=n)
+            self._reserve_reach(buffers)
+
+        def launch(vf, n_vf, ee, n_ee):
+            self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
+                                  [n_vf, vf, ee, x, self._faces, self._edges, max_distance,
+                                   self._counter, self._pairs, self._kind, self._offset, self._weights,
+                                   self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
+
+        total = self._run(buffers, launch, read)
+        if radius is not self._no_radius:
+            self._x0_holds_reach = True
+            self._reach = _Reach(self, None, None)
+        return total
+
+    def drop_reach(self) -> None:
+        """Forgets the pairs the last near() kept for the CCD calls (its radii were not finite)."""
+        self._reach = None
+
+    def note_reach_counts(self, counts) -> None:
+        """The kept pairs' counts (vertex-face, edge-edge) as the caller read them with its own
+        counts (the reach counter is a view into them): no second read."""
+        if self._reach is not None:
+            self._reach.counts = (int(counts[0]), int(counts[1]))
+
+    def _reserve_reach(self, buffers) -> None:
+        """Room in the kept pairs' buffers for every candidate of ``buffers``, per kind."""
+        zero(self._reach_counter)
+        for kind in (0, 1):
+            n = buffers[2 * kind + 1]
+            if self._reach_pairs[kind].shape[0] < n:
+                self._reach_pairs[kind] = wp.empty(grown_capacity(n, self._reach_pairs[kind].shape[0], 64),
+                                                   dtype=wp.vec2i, device=self.device)
+
+
+class _Reach:
+    """The pairs that the last :meth:`CandidateNarrowPhase.near` with motion radii kept for the
+    CCD calls from its positions, with its cover, and those positions and radii, on the host when
+    given, else read from the device when first asked for (the kept pairs' counts too, unless the
+    caller noted them)."""
+
+    def __init__(self, narrow: CandidateNarrowPhase, positions, radius_squared) -> None:
+        self.narrow, self.cover = narrow, narrow._cover
+        self._positions, self._radius_squared = positions, radius_squared
+        self.counts = None
+
+    def positions(self) -> np.ndarray:
+        if self._positions is None:
+            self._positions = np.array(host(self.narrow._reach_x)[:len(self.cover[1])], dtype=np.float64)
+        return self._positions
+
+    def radius_squared(self) -> np.ndarray:
+        if self._radius_squared is None:
+            self._radius_squared = np.square(host(self.narrow._radius)[:len(self.cover[1])])
+        return self._radius_squared
+
+    def buffers(self) -> tuple:
+        if self.counts is None:
+            counts = host(self.narrow._reach_counter)
+            self.counts = (int(counts[0]), int(counts[1]))
+        pairs = self.narrow._reach_pairs
+        return pairs[0], self.counts[0], pairs[1], self.counts[1]
 
 
 # no hit (shared, read only): _collect's (kind, pair, order), CandidateNarrowPhase.ccd's (kind,

@@ -264,3 +264,28 @@ def cover_check_kernel(
         r = reach_radius[i]
         if not (wp.dot(step, step) <= r * r):
             wp.atomic_add(beyond_reach, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def reach_radius_kernel(
+    x0: wp.array(dtype=wp.vec3d),
+    x1: wp.array(dtype=wp.vec3d),
+    slack: f64,
+    radius: wp.array(dtype=f64),
+    unbounded: wp.array(dtype=wp.int32),
+):
+    """Vertex ``tid``'s motion radius [m] for the proximity pass's kept pairs
+    (:meth:`collision.narrow_phase.CandidateNarrowPhase.near_count_covered`): the length of its
+    step ``x0 -> x1`` plus ``slack``; ``unbounded[0]`` counts the radii that are not finite (a
+    step past 1e154 m, or NaN), for which the pass keeps no pairs. The squares are summed in
+    the host's order, ``(x^2 + y^2) + z^2`` (``np.square(step) @ ONES3``), so the radii are the
+    same bits as the host's."""
+    i = wp.tid()
+    step = x1[i] - x0[i]
+    sx = step[0] * step[0]
+    sy = step[1] * step[1]
+    sz = step[2] * step[2]
+    r = wp.sqrt((sx + sy) + sz) + slack
+    radius[i] = r
+    if not wp.isfinite(r):
+        wp.atomic_add(unbounded, 0, 1)

@@ -987,3 +987,80 @@ def _start_within_kernel(kinds: wp.array(dtype=wp.int32), queries: wp.array(dtyp
     within[i] = 0
     if kccd.distance_at(kind, m, wp.float64(0.0)) <= kccd.DISTANCE_ERROR_FACTOR * kccd.UNIT_ROUNDOFF * extent:
         within[i] = 1
+
+
+def test_the_cover_test_and_the_proximity_pass_on_device_positions_decide_as_the_host_does():
+    """cover_test_device keeps a cover exactly where cover()'s host test does (a motion within
+    the slack, a start just beyond it, one on it to rounding, a NaN end), and near_count_covered from the covered start
+    gives near()'s pairs and, with the end positions, the same motion radii bit for bit (the
+    host's (x^2 + y^2) + z^2), the same kept pairs, so the CCD from them tests the same pairs;
+    a radius that is not finite is counted, and its kept pairs are dropped."""
+    import warp as wp
+
+    from collision.broad_phase import BroadPhase, mesh_edges
+    from collision.narrow_phase import CandidateNarrowPhase
+
+    x0, x1, faces = _crumpled_sheets(5)
+    edges = mesh_edges(faces)
+    on_host = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    on_device = CandidateNarrowPhase(BroadPhase(faces, edges, num_vertices=len(x0)))
+    margin, slack = 0.02, 0.005
+    flag = wp.zeros(1, dtype=wp.int32)
+    dev = lambda a: wp.array(a, dtype=wp.vec3d)  # noqa: E731
+    assert not on_device.cover_test_device(dev(x0), dev(x1), margin, slack, flag)  # no cover yet: nothing launched
+    on_host.cover(x0, x1, margin, slack)
+    on_device.query_cover(x0, x1, margin)
+    rng = np.random.default_rng(5)
+    s = rng.uniform(0.0, 1.0, size=(len(x0), 1))
+    y0 = x0 + s * (x1 - x0) + rng.uniform(-0.9 * slack, 0.9 * slack, size=x0.shape)
+    y1 = x1 + rng.uniform(-0.9 * slack, 0.9 * slack, size=x0.shape)
+    beyond = y0.copy()
+    beyond[7, 2] = max(x0[7, 2], x1[7, 2]) + slack * (1.0 + 1e-12)  # a hair past the slack
+    at_edge = y0.copy()
+    at_edge[7, 2] = max(x0[7, 2], x1[7, 2]) + slack  # on the slack to rounding: either, as the host decides
+    nan_end = y1.copy()
+    nan_end[2, 0] = np.nan
+    for start, end, kept in ((y0, y1, True), (beyond, y1, False), (at_edge, y1, None), (y0, nan_end, False)):
+        assert on_device.cover_test_device(dev(start), dev(end), margin, slack, flag)
+        on_host.query_cover(x0, x1, margin)  # the same cover (a failed test below queries afresh)
+        queries = on_host.queries
+        if np.isnan(end).any():
+            with pytest.raises(ValueError):  # not kept: the fresh query refuses the NaN
+                on_host.cover(start, end, margin, slack)
+            host_kept = False
+        else:
+            on_host.cover(start, end, margin, slack)
+            host_kept = on_host.queries == queries
+        assert (flag.numpy()[0] == 0) == host_kept
+        assert kept is None or host_kept == kept
+    # the proximity pass from a kept cover's start, with motion radii
+    assert on_device.cover_test_device(dev(y0), dev(y1), margin, slack, flag) and flag.numpy()[0] == 0
+    on_device.keep_cover(slack)
+    on_host.query_cover(x0, x1, margin)
+    on_host.cover(y0, y1, margin, slack)
+    reach_slack = 0.001
+    radius = np.sqrt(np.square(y1 - y0) @ np.ones(3)) + reach_slack
+    unbounded = wp.zeros(1, dtype=wp.int32)
+    # a distance whose room in the cover (COVER_SAFETY (m - d)) is narrower than the slack the
+    # start may lie out: refused (near() would test the positions on the host)
+    with pytest.raises(RuntimeError, match="outside the cover"):
+        on_device.near_count_covered(dev(y0), 0.01, dev(y1), reach_slack, unbounded)
+    host_count = on_host.near_count(y0, 0.005, radius)
+    device_count = on_device.near_count_covered(dev(y0), 0.005, dev(y1), reach_slack, unbounded)
+    assert device_count == host_count > 0 and unbounded.numpy()[0] == 0
+    assert on_device._radius.numpy().tobytes() == radius.tobytes()
+    got, want = on_device._reach.buffers(), on_host._reach.buffers()
+    assert got[1] == want[1] and got[3] == want[3] and got[1] + got[3] > 0
+    for kind in (0, 2):
+        np.testing.assert_array_equal(got[kind].numpy()[:got[kind + 1]], want[kind].numpy()[:want[kind + 1]])
+    np.testing.assert_array_equal(on_device._reach.positions(), y0)
+    for g, w in zip(on_device.ccd(y0, y1), on_host.ccd(y0, y1)):
+        np.testing.assert_array_equal(g, w)
+    assert on_device.reach_calls == on_host.reach_calls == 1
+    # a step that overflows: counted, and the caller drops the kept pairs
+    huge = y1.copy()
+    huge[1] = 1e200
+    on_device.near_count_covered(dev(y0), 0.005, dev(huge), reach_slack, unbounded)
+    assert unbounded.numpy()[0] == 1
+    on_device.drop_reach()
+    assert on_device._reach is None

@@ -312,7 +312,7 @@ def test_cover_widens_for_sparse_scenes_with_the_same_contacts(monkeypatch):
     monkeypatch.setattr(detect, "COVER_SCALES", scales)
     monkeypatch.setattr(detect, "COVER_DENSE_CANDIDATES", -1)
     x = wide.detect.narrow.broad_phase.positions[0].numpy()
-    wide.detect.cover(x, x + 1.0, wide.separation)
+    wide.detect.cover(wp.array(x, dtype=wp.vec3d), wp.array(x + 1.0, dtype=wp.vec3d), wide.separation)
     assert wide.detect.cover_scale == len(scales) - 2
 
 

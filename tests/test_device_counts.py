@@ -74,3 +74,61 @@ def test_a_ccd_round_reads_the_host_once(response, counted, monkeypatch):
     on_device = rounds[rounds[:, 1] == 0, 0]
     assert (on_device == 1).all(), np.unique(on_device, return_counts=True)
     assert len(on_device) > 0.9 * len(rounds)
+
+
+@pytest.mark.parametrize("name,response", [("rigid_toss", "gauss-seidel"), ("cloth_rigid", "gauss-seidel"),
+                                           ("rigid_toss", "replayed")])
+def test_a_substep_start_reads_the_host_once_unless_its_cover_is_queried_afresh(name, response, monkeypatch):
+    """The start of each substep (the broad-phase cover's test and the proximity pass's
+    detection; for Gauss-Seidel the whole pass) calls ``host`` once on the device path: the
+    pass's counts, which settle the cover's test (a kernel) and the pairs kept for the rounds; no
+    position is read. A substep whose motion left
+    the kept cover queries afresh (the positions read, and its pass then runs again) and reads
+    more; those are counted apart."""
+    monkeypatch.setattr(buffers, "PEEK", False)
+    starts, context, depth = [], [None], [0]
+    original_host = detect.host
+
+    def counting_host(arr):
+        if context[0] is not None:
+            context[0][0 if context[0][2] == 0 else 1] += 1
+        return original_host(arr)
+
+    originals = {m: getattr(detect.ContactDetection, m) for m in ("cover", "proximity", "proximity_hits",
+                                                                    "_fresh_cover")}
+
+    def start_stage(method):
+        def counted(self, *args, **kwargs):
+            if method == "cover":  # a substep starts: [reads, reads in fresh queries, inside a query]
+                context[0] = [0, 0, 0]
+                starts.append(context[0])
+            if method == "_fresh_cover":
+                context[0][2] += 1
+            depth[0] += 1
+            try:
+                return originals[method](self, *args, **kwargs)
+            finally:
+                depth[0] -= 1
+                if method == "_fresh_cover":
+                    context[0][2] -= 1
+                    context[0].append("fresh")
+                elif method != "cover" and depth[0] == 0:
+                    context[0] = None  # the pass's detection ends (the replayed response's solve follows)
+        return counted
+
+    import collision.broad_phase as broad_phase
+    import collision.narrow_phase as narrow_phase
+
+    for module in (detect, narrow_phase, broad_phase):
+        monkeypatch.setattr(module, "host", counting_host)
+    for method in originals:
+        monkeypatch.setattr(detect.ContactDetection, method, start_stage(method))
+
+    _run(name, 30, response)
+    kept = [s[0] for s in starts if "fresh" not in s]
+    fresh = [s for s in starts if "fresh" in s]
+    assert len(starts) == 240 and len(kept) >= 100, (len(starts), len(kept))
+    assert set(kept) == {1}, np.unique(kept, return_counts=True)
+    # a fresh query reads the positions (2) and the broad phase's counts; its pass reads its
+    # counts once (none without a candidate), twice when a kept cover failed first
+    assert all(s[1] >= 2 and s[0] <= 2 for s in fresh), fresh

@@ -9,7 +9,6 @@ import numpy as np
 import warp as wp
 
 from collision.broad_phase import BroadPhase
-from collision.ccd import ONES3
 from collision.narrow_phase import CandidateNarrowPhase
 from core.buffers import host, peek, upload, zero
 from kernels.contact_geometry import contact_geometry_kernel
@@ -27,15 +26,18 @@ from sim.contact.tuning import (APPROACH_EPS, CCD_REACH_MIN_CANDIDATES, CCD_REAC
 
 
 COUNT_SLOTS = ("mesh", "plane", "kept", "repeated", "approaching", "contacts", "uncovered", "beyond_reach",
-               "round", "events", "go")
+               "round", "events", "go", "cover_outside", "reach_vf", "reach_ee", "unbounded")
 """The slots of :attr:`ContactDetection.counts`: the narrow phase's hits, the vertex-plane hits,
 the hits kept in pair order, the pairs found twice, the approaching hits, the contact set's
 rows, the vertices whose motion left the broad-phase cover's room or their reach radius
-(:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`), and the state of CCD
-rounds run on the device (:func:`kernels.contact_set.round_control_kernel`): the round, the approaching
-hits added so far, and whether the next round runs."""
+(:meth:`collision.narrow_phase.CandidateNarrowPhase.ccd_count_device`), the state of CCD
+rounds run on the device (:func:`kernels.contact_set.round_control_kernel`): the round, the
+approaching hits added so far, and whether the next round runs; then the substep's start: the
+vertices whose motion left the kept cover's slack (:meth:`ContactDetection.cover`), the pairs
+the proximity pass kept for the rounds (vertex-face, edge-edge) and the motion radii that are
+not finite."""
 (_MESH, _PLANE, _KEPT, _REPEATED, _APPROACHING, _CONTACTS, _UNCOVERED, _BEYOND_REACH, ROUND, EVENTS,
- _GO) = range(len(COUNT_SLOTS))
+ _GO, _COVER_OUTSIDE, _REACH_VF, _REACH_EE, _UNBOUNDED) = range(len(COUNT_SLOTS))
 
 
 class ContactDetection:
@@ -92,8 +94,9 @@ class ContactDetection:
         # one read (read_counts); each kernel gets the one-element view of its count
         self.counts = wp.zeros(len(COUNT_SLOTS), dtype=wp.int32, device=dev)
         (self._mesh_counter, self._plane_counter, self._kept_counter, self._repeated_counter,
-         self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach, _, _, self.go) = (
-            self.counts[i:i + 1] for i in range(len(COUNT_SLOTS)))
+         self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach, _, _, self.go,
+         self._cover_outside, _, _, self._unbounded) = (self.counts[i:i + 1] for i in range(len(COUNT_SLOTS)))
+        self._cover_pending = None  # (x0, x1, delta) of a cover test not read yet (cover())
         self.bound = 0  # the last sorted pass's bound on its hits (the launches' dimension)
         self.host_tested_rounds = 0  # CCD rounds whose cover was tested on the host (statistics)
         self.broad_phase = None
@@ -104,7 +107,8 @@ class ContactDetection:
                 groups=np.concatenate(groups), self_collision=np.array(self_collision, dtype=bool),
                 static=np.array(static, dtype=bool), device=dev,
             )
-            self.narrow = CandidateNarrowPhase(self.broad_phase, counter=self._mesh_counter, **ccd_options)
+            self.narrow = CandidateNarrowPhase(self.broad_phase, counter=self._mesh_counter,
+                                               reach_counter=self.counts[_REACH_VF:_REACH_EE + 1], **ccd_options)
         self.cover_scale = 0  # index into COVER_SCALES
         # the vertices the vertex-plane tests cover (movable particles and the rigid surface
         # vertices) and the planes' normals / offsets. The integrator's plane stage has already
@@ -160,10 +164,8 @@ class ContactDetection:
         (:func:`kernels.pose.pose_substep_kernel`).
 
         Returns:
-            (start positions on the host (V + 1, 3) (a view on the CPU, as :meth:`pose`'s), the
-            start positions' and lever arms' device arrays, the predicted positions on the host,
-            the inverse inertia device array); the predicted positions' device array is kept in
-            ``x1_pred_w``.
+            (the start positions' and lever arms' device arrays, the predicted positions' device
+            array (also kept in ``x1_pred_w``), the inverse inertia device array).
         """
         n, R, B = self.n_vertices + 1, self.replay, self.n_bodies
         empty = self.staging.empty
@@ -177,22 +179,53 @@ class ContactDetection:
             R.vertex_type, R.vertex_owner, R.local, self.model.body_inv_inertia if B else self._no_inertia,
             n, B, x0, lever0, x1, inv_inertia_w])
         self.x1_pred_w = x1
-        return host(x0)[:n], x0, lever0, host(x1)[:n], inv_inertia_w
+        return x0, lever0, x1, inv_inertia_w
 
-    def cover(self, x0: np.ndarray, x1_pred: np.ndarray, delta: float) -> None:
+    def cover(self, x0_w: wp.array, x1_pred_w: wp.array, delta: float) -> None:
         """The substep's broad-phase cover (:meth:`CandidateNarrowPhase.cover`) of the motion
-        ``x0 -> x1_pred`` (V, 3) at the current scale (:data:`COVER_SCALES`), which a fresh query
-        then moves a step towards its candidate budget."""
+        ``x0_w -> x1_pred_w`` (device arrays of V + 1 rows, the dummy vertex last) at the current
+        scale (:data:`COVER_SCALES`), which a fresh query then moves a step towards its candidate
+        budget. Whether the kept cover still holds the motion is tested on the device
+        (:meth:`CandidateNarrowPhase.cover_test_device`); where its count cannot be peeked at
+        (a GPU) the pass that follows assumes it does, and its one read settles it
+        (:meth:`cover_failed`). Only a fresh query reads the positions."""
         scale = COVER_SCALES[self.cover_scale]
-        queries = self.narrow.queries
-        self.narrow.cover(x0, x1_pred, COVER_MARGIN * scale * delta, COVER_SLACK * scale * delta, COVER_AHEAD,
-                           COVER_AHEAD_LIMIT * scale * delta)
-        if self.narrow.queries != queries:
-            found = self.narrow.covered_candidates()
-            if found < COVER_SPARSE_CANDIDATES:
-                self.cover_scale = min(self.cover_scale + 1, len(COVER_SCALES) - 1)
-            elif found > COVER_DENSE_CANDIDATES:
-                self.cover_scale = max(self.cover_scale - 1, 0)
+        margin, slack = COVER_MARGIN * scale * delta, COVER_SLACK * scale * delta
+        self._cover_pending = None
+        if self.narrow.cover_test_device(x0_w, x1_pred_w, margin, slack, self._cover_outside):
+            peeked = peek(self._cover_outside)
+            if peeked is None:
+                self._cover_pending = (x0_w, x1_pred_w, delta)
+                return
+            if not peeked[0]:
+                self.narrow.keep_cover(slack)
+                return
+        self._fresh_cover(x0_w, x1_pred_w, delta)
+
+    def _fresh_cover(self, x0_w: wp.array, x1_pred_w: wp.array, delta: float) -> None:
+        """:meth:`cover`'s fresh broad-phase query (the positions read), and the scale's step."""
+        n = self.n_vertices
+        scale = COVER_SCALES[self.cover_scale]
+        self.narrow.query_cover(host(x0_w)[:n], host(x1_pred_w)[:n], COVER_MARGIN * scale * delta, COVER_AHEAD,
+                                COVER_AHEAD_LIMIT * scale * delta)
+        found = self.narrow.covered_candidates()
+        if found < COVER_SPARSE_CANDIDATES:
+            self.cover_scale = min(self.cover_scale + 1, len(COVER_SCALES) - 1)
+        elif found > COVER_DENSE_CANDIDATES:
+            self.cover_scale = max(self.cover_scale - 1, 0)
+
+    def cover_failed(self, counts: np.ndarray) -> bool:
+        """After the first pass of a substep whose cover test was left on the device
+        (:meth:`cover`), with that pass's counts: whether the kept cover failed (it then queries
+        afresh, and the pass must run again); else the cover is kept."""
+        pending, self._cover_pending = self._cover_pending, None
+        if pending is None:
+            return False
+        if not counts[_COVER_OUTSIDE]:
+            self.narrow.keep_cover(COVER_SLACK * COVER_SCALES[self.cover_scale] * pending[2])
+            return False
+        self._fresh_cover(*pending)
+        return True
 
     def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> None:
         """Puts the narrow phase's hits (:attr:`CandidateNarrowPhase.hits`) and the vertex-plane
@@ -309,9 +342,9 @@ class ContactDetection:
                 self._plane_counter, self._plane_pairs_w, self._plane_time_w])
         return n * len(self.planes)
 
-    def proximity(self, x0, x1_pred, x0_w, lever0_w, vm, h: float, delta: float) -> int:
-        """The proximity contacts at the start of the substep (positions ``x0`` (V + 1, 3), its
-        device array ``x0_w``) into the empty contact set: pairs of primitives whose exact
+    def proximity(self, x0_w, x1_pred_w, lever0_w, vm, h: float, delta: float) -> int:
+        """The proximity contacts at the start of the substep (device positions ``x0_w`` (V + 1,))
+        into the empty contact set: pairs of primitives whose exact
         closest points are nearer than ``delta`` [m] (up to :data:`PROXIMITY_HYSTERESIS` beyond
         it), then movable vertices nearer than ``delta`` to a plane (rigid ones up to the same
         band), with the start geometry (:meth:`hit_geometry` at ``t* = 0``: the offset's
@@ -320,51 +353,74 @@ class ContactDetection:
         :func:`kernels.contact_geometry.contact_geometry_kernel` says).
 
         The same pass keeps the pairs that the CCD rounds can hit while every vertex ends within
-        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0`` (``x1_pred`` (V + 1,
-        3)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns the
-        number of contacts (the pass's counts come to the host in one read)."""
-        if not self.proximity_hits(x0, x1_pred, x0_w, delta, read=False):
-            return 0
-        self.hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
-        self.hits.count = self.bound  # a bound on the rows the set grows by (the set is empty)
-        self.add_hits(True, 0, read=False)
-        return int(self.read_counts()[_CONTACTS])
+        ``CCD_REACH_SLACK delta`` of its predicted distance from ``x0_w`` (``x1_pred_w`` (V +
+        1,)), which is then all those rounds test (:meth:`CandidateNarrowPhase.near`). Returns
+        the number of contacts (the pass's counts, the cover's test of :meth:`cover` with them,
+        come to the host in one read)."""
+        while True:
+            if not self.proximity_hits(x0_w, x1_pred_w, delta, read=False):
+                return 0
+            self.hit_geometry(x0_w, x0_w, lever0_w, vm, None, None, h)
+            self.hits.count = self.bound  # a bound on the rows the set grows by (the set is empty)
+            self.add_hits(True, 0, read=False)
+            counts = self.read_proximity_counts()
+            if counts is not None:
+                return int(counts[_CONTACTS])
+            self.contacts.clear()  # the kept cover failed its test: the pass runs again on a fresh one
 
-    def proximity_hits(self, x0, x1_pred, x0_w, delta: float, read: bool = True) -> int:
+    def proximity_hits(self, x0_w, x1_pred_w, delta: float, read: bool = True) -> int:
         """:meth:`proximity`'s detection: the pairs nearer than ``(1 + PROXIMITY_HYSTERESIS)
-        delta`` at the start into :attr:`hits` (sorted); returns their number (the pass's counts
-        come to the host in one read), or with ``read=False`` a bound on it (0: none)."""
-        n = self.n_vertices
-        radius = None
-        if self.narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES:
-            step = x1_pred[:n] - x0[:n]
-            radius = np.sqrt(np.square(step) @ ONES3) + CCD_REACH_SLACK * delta
-            if not radius.max() < np.inf:  # a step past 1e154 m overflows (or NaN): test every candidate
-                radius = None
-        reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
-        # slack: the exact test follows
-        mesh = self.narrow.near_count(x0[:n], reach * (1.0 + 1e-9), radius, read=False)
-        planes = self.plane_hits(x0_w, delta)
-        mesh, planes = self._exact(mesh, planes)
-        if not mesh + planes:
-            return 0
-        self.sorted_hits(mesh, planes, 0, reach)
-        return int(self.read_counts()[_KEPT]) if read else self.bound
+        delta`` at the start ``x0_w`` into :attr:`hits` (sorted); returns their number (the
+        pass's counts come to the host in one read), or with ``read=False`` a bound on it (0:
+        none; :meth:`read_proximity_counts` then reads them)."""
+        while True:
+            # motion radii from x0_w to x1_pred_w where the candidates are many enough
+            x1 = x1_pred_w if self.narrow.covered_candidates() >= CCD_REACH_MIN_CANDIDATES else None
+            reach = delta * (1.0 + PROXIMITY_HYSTERESIS)
+            # slack: the exact test follows
+            mesh = self.narrow.near_count_covered(x0_w, reach * (1.0 + 1e-9), x1, CCD_REACH_SLACK * delta,
+                                                  self._unbounded, read=False)
+            planes = self.plane_hits(x0_w, delta)
+            mesh, planes = self._exact(mesh, planes)
+            if not mesh + planes:
+                if self._cover_pending is not None:  # no pass to read its test with: read it alone
+                    zero(self._kept_counter)
+                    zero(self._repeated_counter)
+                    if self.read_proximity_counts() is None:
+                        continue  # the pass runs again on a fresh cover
+                return 0
+            self.sorted_hits(mesh, planes, 0, reach)
+            if not read:
+                return self.bound
+            counts = self.read_proximity_counts()
+            if counts is not None:
+                return int(counts[_KEPT])
 
-    def ccd_round(self, x0, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
-        """One Gauss-Seidel CCD round of the straight paths from the start positions ``x0`` (V +
-        1, 3) on the host (device array ``x0_w``, the positions of this substep's
-        :meth:`proximity`) to the device positions ``x1_w``: the hits (:meth:`ccd_detect`), their
+    def read_proximity_counts(self) -> np.ndarray | None:
+        """:meth:`read_counts` after a substep's proximity pass, which also settle its cover
+        (:meth:`cover_failed`: None when it failed, the pass to run again) and the pairs it kept
+        for the rounds (dropped when a motion radius is not finite)."""
+        counts = np.array(host(self.counts))
+        if self.cover_failed(counts):
+            return None
+        if counts[_UNBOUNDED]:
+            self.narrow.drop_reach()
+        else:
+            self.narrow.note_reach_counts(counts[_REACH_VF:_REACH_EE + 1])
+        return self.accept_counts(counts)
+
+    def ccd_round(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
+        """One Gauss-Seidel CCD round of the straight paths from the start positions ``x0_w`` (V +
+        1,) (the positions of this substep's :meth:`proximity`) to the device positions ``x1_w``: the hits (:meth:`ccd_detect`), their
         geometry at their detected times and whether they approach, with the counts kept on the
         device until the round's one read. Returns the number of approaching hits."""
-        counts = self.ccd_detect(x0, x0_w, x1_w, 2,
+        counts = self.ccd_detect(x0_w, x1_w, 2,
                                  lambda: self._round_decisions(x0_w, x1_w, lever0_w, vm, vel, times, h))
         return 0 if counts is None else int(counts[_APPROACHING])
 
-    def ccd_detect(self, x0, x0_w, x1_w, time_mode: int, decide=None) -> np.ndarray | None:
-        """The hits of the straight paths from the start positions ``x0`` (V + 1, 3) on the host
-        (device array ``x0_w``, the positions of this substep's proximity pass) to the device
-        positions ``x1_w`` (:meth:`ccd_hits`; ``time_mode`` as there), then ``decide()`` (launches
+    def ccd_detect(self, x0_w, x1_w, time_mode: int, decide=None) -> np.ndarray | None:
+        """The hits of the straight paths from the start positions ``x0_w`` (V + 1,) (the
+        positions of this substep's proximity pass) to the device positions ``x1_w`` (:meth:`ccd_hits`; ``time_mode`` as there), then ``decide()`` (launches
         on the hits that leave their counts on the device), all brought to the host in one read
         (:meth:`read_counts`). The broad-phase cover is tested on the device: a round whose
         vertices moved farther than the proximity pass's reach radii runs again over the cover's
@@ -392,7 +448,7 @@ class ContactDetection:
                 break
             if not counts[_BEYOND_REACH]:
                 return counts
-        return self._host_tested_round(x0, x1_w, time_mode, decide)
+        return self._host_tested_round(x0_w, x1_w, time_mode, decide)
 
     def _match_and_decide(self, mesh: int, planes: int, time_mode: int, decide) -> None:
         """:meth:`sort_and_match` of a pass with ``mesh`` and ``planes`` bounds on its hits, then
@@ -454,10 +510,10 @@ class ContactDetection:
         self.accept_counts(counts)
         return counts, not counts[_APPROACHING]
 
-    def _host_tested_round(self, x0, x1_w, time_mode: int, decide) -> np.ndarray | None:
-        """:meth:`ccd_detect` with the cover tested on the host (the end positions read)."""
+    def _host_tested_round(self, x0_w, x1_w, time_mode: int, decide) -> np.ndarray | None:
+        """:meth:`ccd_detect` with the cover tested on the host (the positions read)."""
         self.host_tested_rounds += 1
-        x1 = host(x1_w)[: self.n_vertices + 1]
+        x0, x1 = host(x0_w)[: self.n_vertices + 1], host(x1_w)[: self.n_vertices + 1]
         if not self.ccd_hits(x0, x1, x1_w, time_mode):
             return None
         if decide is not None:

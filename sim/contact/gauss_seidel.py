@@ -37,9 +37,8 @@ class GaussSeidelSubstep:
         hd, state_in, state_pred, h = self.handler, self.state_in, self.state_pred, self.h
         P, B = hd.n_particles, hd.n_bodies
         R = hd.replay
-        # the vertices at the start (with the rigid ones' lever arms) and the predicted end;
-        # host views for the broad-phase cover's box tests (per vertex, not per contact)
-        x0, x0_w, lever0_w, x1_pred, inv_inertia_w = hd.detect.pose_substep(state_in, state_pred)
+        # the vertices at the start (with the rigid ones' lever arms) and the predicted end
+        x0_w, lever0_w, x1_pred_w, inv_inertia_w = hd.detect.pose_substep(state_in, state_pred)
         delta = hd.separation
         cs = hd.contact_set
         cs.clear()
@@ -49,10 +48,10 @@ class GaussSeidelSubstep:
         zone_flags = None  # their members per particle / body (device), for the contact times
         # one broad-phase query for the proximity pass and the CCD rounds while their motion
         # stays within the margin of the predicted one (CandidateNarrowPhase.cover)
-        hd.detect.cover(x0[:-1], x1_pred[:-1], delta)
+        hd.detect.cover(x0_w, x1_pred_w, delta)
         # 1. proximity contacts at the start of the substep: the mesh and the plane ones, added
         # and solved together
-        if hd.detect.proximity(x0, x1_pred, x0_w, lever0_w, vm, h, delta):
+        if hd.detect.proximity(x0_w, x1_pred_w, lever0_w, vm, h, delta):
             vel = hd.velocities(state_pred)
             hd.gauss_seidel(vel, lever0_w, inv_inertia_w)
 
@@ -75,7 +74,7 @@ class GaussSeidelSubstep:
                 x1_w, times = planned[2], planned[3]
             else:  # nothing changed the prediction
                 x1_w, times = hd.detect.x1_pred_w, None
-            approaching = hd.detect.ccd_round(x0, x0_w, x1_w, lever0_w, vm, vel, times, h)
+            approaching = hd.detect.ccd_round(x0_w, x1_w, lever0_w, vm, vel, times, h)
             if not approaching:
                 break
             if iteration >= hd.max_iterations:

@@ -201,10 +201,9 @@ class ReplayedSubstep:
         one broad-phase query while the rounds' motion stays near the predicted one."""
         hd, sp = self.handler, self.state_pred
         with paused_tape():  # decisions: off the tape
-            self.x0 = host(self.X0)
-            x1_pred = host(hd.detect.pose("predicted", sp.particle_q, sp.body_q))[: hd.n_vertices + 1]
-            hd.detect.cover(self.x0[:hd.n_vertices], x1_pred[:hd.n_vertices], self.delta)
-            found = hd.detect.proximity_hits(self.x0, x1_pred, self.X0, self.delta)
+            x1_pred = hd.detect.pose("predicted", sp.particle_q, sp.body_q)
+            hd.detect.cover(self.X0, x1_pred, self.delta)
+            found = hd.detect.proximity_hits(self.X0, x1_pred, self.delta)
         if found:
             self.add(self.geometry(self.X0, hd.detect.inf_time_p, hd.detect.inf_time_b), True, 0)  # no contact time yet
             if self.contacts.count:
@@ -239,7 +238,7 @@ class ReplayedSubstep:
             X1p, BQ1, tp, tb = self.plan()
             X1 = R.positions(X1p if P else None, BQ1 if B else None)
             with paused_tape():  # decisions: off the tape
-                counts = hd.detect.ccd_detect(self.x0, self.X0, X1, 1)
+                counts = hd.detect.ccd_detect(self.X0, X1, 1)
             if counts is None or not hd.detect.hits.count:
                 break
             out = self.geometry(X1, tp, tb)
