@@ -425,13 +425,7 @@ class CandidateNarrowPhase:
             radius = upload(self._radius, motion_radius)
             self._reserve_reach(buffers)
 
-        def launch(vf, n_vf, ee, n_ee):
-            self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
-                                  [n_vf, vf, ee, xa, self._faces, self._edges, max_distance,
-                                   self._counter, self._pairs, self._kind, self._offset, self._weights,
-                                   self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
-
-        total = self._run(buffers, launch, read)
+        total = self._run(buffers, self._near_launch(xa, max_distance, radius), read)
         if radius is not self._no_radius:
             self._x0_holds_reach = True  # the cover path of _candidates uploaded x there
             self._reach = _Reach(self, np.array(x, dtype=np.float64), np.square(motion_radius))
@@ -477,17 +471,21 @@ class CandidateNarrowPhase:
             wp.copy(self._reach_x, x, count=n)
             self._reserve_reach(buffers)
 
+        total = self._run(buffers, self._near_launch(x, max_distance, radius), read)
+        if radius is not self._no_radius:
+            self._x0_holds_reach = True
+            self._reach = _Reach(self, None, None)
+        return total
+
+    def _near_launch(self, x, max_distance: float, radius):
+        """The proximity kernel's launch over candidate buffers (:meth:`_run`'s ``launch``) at the
+        device positions ``x``, keeping the pairs the motion radii ``radius`` reach (none when empty)."""
         def launch(vf, n_vf, ee, n_ee):
             self._launches.launch("near", pair_proximity_kernel, n_vf + n_ee,
                                   [n_vf, vf, ee, x, self._faces, self._edges, max_distance,
                                    self._counter, self._pairs, self._kind, self._offset, self._weights,
                                    self._vertices, radius, self._reach_counter, self._reach_pairs[0], self._reach_pairs[1]])
-
-        total = self._run(buffers, launch, read)
-        if radius is not self._no_radius:
-            self._x0_holds_reach = True
-            self._reach = _Reach(self, None, None)
-        return total
+        return launch
 
     def drop_reach(self) -> None:
         """Forgets the pairs the last near() kept for the CCD calls (its radii were not finite)."""
