@@ -104,7 +104,7 @@ class CandidateNarrowPhase:
         self._cover_lo = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._cover_hi = wp.empty(n, dtype=wp.vec3d, device=dev)
         self._no_radius = wp.empty(0, dtype=wp.float64, device=dev)
-        self._reach = None  # the _Reach of the last near() with motion radii
+        self._reach = None  # the _Reach of the last near() / near_count_covered() with motion radii
         self._start_gap = 0.0  # how far the last cover()'s start positions may lie outside its boxes [m]
         self._x0_holds_reach = False  # whether the start buffer still holds those positions
         self._launches = RecordedLaunches(dev)  # replayed launches: no per-call argument packing
@@ -149,6 +149,16 @@ class CandidateNarrowPhase:
         (:meth:`cover`'s test held, on the host or on the device)."""
         self.kept_covers += 1
         self._start_gap = float(slack)
+
+    def assume_kept(self, slack: float) -> None:
+        """Uses the current cover for a motion assumed within ``slack`` [m] of its boxes, its
+        device test not read yet (the caller then keeps it, :meth:`keep_cover`, or queries
+        afresh, :meth:`query_cover`, and calls :meth:`discard_pass` for the pass it ran on it)."""
+        self._start_gap = float(slack)
+
+    def discard_pass(self) -> None:
+        """A :meth:`near_count_covered` pass ran on a cover that failed its test: not a reuse."""
+        self.reuses -= 1
 
     def cover_test_device(self, x0, x1, margin: float, slack: float, outside: wp.array) -> bool:
         """:meth:`cover`'s test of the kept cover for the device positions ``x0``, ``x1`` (vec3d
@@ -457,6 +467,8 @@ class CandidateNarrowPhase:
         n = len(c[1])
         if x.shape[0] < n or (x1 is not None and x1.shape[0] < n):
             raise ValueError(f"x, x1: expected at least {n} rows (the mesh's vertices)")
+        if x1 is not None and unbounded is None:
+            raise ValueError("unbounded: a one-element int32 device array is needed with x1")
         self._reach = None
         self.reuses += 1
         self._x0_holds_reach = False
@@ -490,6 +502,7 @@ class CandidateNarrowPhase:
     def drop_reach(self) -> None:
         """Forgets the pairs the last near() kept for the CCD calls (its radii were not finite)."""
         self._reach = None
+        self._x0_holds_reach = False
 
     def note_reach_counts(self, counts) -> None:
         """The kept pairs' counts (vertex-face, edge-edge) as the caller read them with its own

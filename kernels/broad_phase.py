@@ -277,9 +277,9 @@ def reach_radius_kernel(
     """Vertex ``tid``'s motion radius [m] for the proximity pass's kept pairs
     (:meth:`collision.narrow_phase.CandidateNarrowPhase.near_count_covered`): the length of its
     step ``x0 -> x1`` plus ``slack``; ``unbounded[0]`` counts the radii that are not finite (a
-    step past 1e154 m, or NaN), for which the pass keeps no pairs. The squares are summed in
-    the host's order, ``(x^2 + y^2) + z^2`` (``np.square(step) @ ONES3``), so the radii are the
-    same bits as the host's."""
+    step past 1e154 m, or NaN), after which the caller drops the kept pairs. The squares are
+    summed in the host's order, ``(x^2 + y^2) + z^2`` (``np.square(step) @ ONES3``), in separate
+    statements: on the CPU, which fuses no multiply-add here, the radii are the host's bits."""
     i = wp.tid()
     step = x1[i] - x0[i]
     sx = step[0] * step[0]

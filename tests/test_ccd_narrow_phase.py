@@ -1007,7 +1007,9 @@ def test_the_cover_test_and_the_proximity_pass_on_device_positions_decide_as_the
     margin, slack = 0.02, 0.005
     flag = wp.zeros(1, dtype=wp.int32)
     dev = lambda a: wp.array(a, dtype=wp.vec3d)  # noqa: E731
-    assert not on_device.cover_test_device(dev(x0), dev(x1), margin, slack, flag)  # no cover yet: nothing launched
+    flag.fill_(7)
+    assert not on_device.cover_test_device(dev(x0), dev(x1), margin, slack, flag)
+    assert flag.numpy()[0] == 7  # no cover yet: nothing launched
     on_host.cover(x0, x1, margin, slack)
     on_device.query_cover(x0, x1, margin)
     rng = np.random.default_rng(5)
@@ -1062,5 +1064,5 @@ def test_the_cover_test_and_the_proximity_pass_on_device_positions_decide_as_the
     huge[1] = 1e200
     on_device.near_count_covered(dev(y0), 0.005, dev(huge), reach_slack, unbounded)
     assert unbounded.numpy()[0] == 1
-    on_device.drop_reach()
-    assert on_device._reach is None
+    with pytest.raises(ValueError, match="unbounded"):
+        on_device.near_count_covered(dev(y0), 0.005, dev(y1))

@@ -193,7 +193,7 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
     s1.particle_q.assign(s0.particle_q.numpy() + [0.0, 0.0, -1.0 / 240])
     s1.particle_qd.assign(s0.particle_qd.numpy())
     assert handler(s0, s1, 1.0 / 240) is not None  # the particle rests on the box: a proximity contact
-    near = handler.detect.narrow.near_count
+    near = handler.detect.narrow.near_count_covered
 
     def near_twice(*args, **kwargs):  # every pair the proximity test finds, reported twice
         bound = near(*args, **kwargs)
@@ -206,7 +206,7 @@ def test_gather_counts_a_pair_twice_and_the_handler_refuses_it():
         counter.assign(np.array([2 * count], dtype=np.int32))
         return 2 * bound
 
-    handler.detect.narrow.near_count = near_twice
+    handler.detect.narrow.near_count_covered = near_twice
     with pytest.raises(RuntimeError, match="pair twice"):
         handler(s0, s1, 1.0 / 240)
 

@@ -196,6 +196,7 @@ class ContactDetection:
             peeked = peek(self._cover_outside)
             if peeked is None:
                 self._cover_pending = (x0_w, x1_pred_w, delta)
+                self.narrow.assume_kept(slack)
                 return
             if not peeked[0]:
                 self.narrow.keep_cover(slack)
@@ -224,6 +225,7 @@ class ContactDetection:
         if not counts[_COVER_OUTSIDE]:
             self.narrow.keep_cover(COVER_SLACK * COVER_SCALES[self.cover_scale] * pending[2])
             return False
+        self.narrow.discard_pass()
         self._fresh_cover(*pending)
         return True
 
@@ -388,6 +390,8 @@ class ContactDetection:
                     zero(self._repeated_counter)
                     if self.read_proximity_counts() is None:
                         continue  # the pass runs again on a fresh cover
+                elif peek(self.counts) is not None:  # the CPU's exact counts (a bound of 0 keeps no pair)
+                    self._settle_reach(peek(self.counts))
                 return 0
             self.sorted_hits(mesh, planes, 0, reach)
             if not read:
@@ -403,11 +407,16 @@ class ContactDetection:
         counts = np.array(host(self.counts))
         if self.cover_failed(counts):
             return None
+        self._settle_reach(counts)
+        return self.accept_counts(counts)
+
+    def _settle_reach(self, counts: np.ndarray) -> None:
+        """The pairs the proximity pass kept for the rounds, from the pass's ``counts``: dropped
+        when a motion radius was not finite, else their counts noted."""
         if counts[_UNBOUNDED]:
             self.narrow.drop_reach()
         else:
             self.narrow.note_reach_counts(counts[_REACH_VF:_REACH_EE + 1])
-        return self.accept_counts(counts)
 
     def ccd_round(self, x0_w, x1_w, lever0_w, vm, vel, times, h: float) -> int:
         """One Gauss-Seidel CCD round of the straight paths from the start positions ``x0_w`` (V +
