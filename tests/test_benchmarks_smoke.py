@@ -149,13 +149,15 @@ def test_host_reads_tiny(tmp_path):
 
 def test_capture_tiny(tmp_path):
     """benchmarks/capture.py times a scene with its CCD rounds launched and as graphs, and finds
-    the two runs bit-identical (every scene: tests/test_capture.py)."""
+    the two runs bit-identical (every scene: tests/test_capture.py), and reports what a reused
+    graph could save per launch."""
     from benchmarks import capture
 
     rows = capture.main(["--steps", "3", "--repeats", "1", "--scenes", "rigid_toss", "--out", str(tmp_path / "c")])
     assert [r["scene"] for r in rows] == ["rigid_toss"]
     assert all(r["bit_identical"] and len(r["captured_ms"]) == 1 for r in rows)
     assert "| rigid_toss |" in _read(tmp_path / "c")
+    assert "runs to repay the recording" in _read(tmp_path / "c")  # the launch costs' table
     with pytest.raises(SystemExit):
         capture.main(["--scenes", "nope"])
 
