@@ -21,6 +21,14 @@ def _same_bytes(a, b: np.ndarray) -> bool:
     return a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
+def _distance(max_distance) -> float:
+    """``max_distance`` [m] as a float, checked finite and >= 0 (a ValueError naming it)."""
+    value = float(max_distance)
+    if not (np.isfinite(value) and value >= 0.0):
+        raise ValueError(f"max_distance: expected a finite distance >= 0, got {max_distance!r}")
+    return value
+
+
 class CandidateNarrowPhase:
     """The narrow phase (and the proximity test) of a mesh's broad-phase candidate pairs, run
     where the broad phase left them (:meth:`collision.broad_phase.BroadPhase.query_device`): one
@@ -418,9 +426,7 @@ class CandidateNarrowPhase:
         """:meth:`near`'s pairs left on the device (:attr:`hits`, the kernel's order); returns
         their number, or with ``read=False`` a bound on it (the number is in the counter)."""
         self._reach = None
-        max_distance = float(max_distance)
-        if not (np.isfinite(max_distance) and max_distance >= 0.0):
-            raise ValueError(f"max_distance: expected a finite distance >= 0, got {max_distance!r}")
+        max_distance = _distance(max_distance)
         if motion_radius is not None:
             motion_radius = np.asarray(motion_radius, dtype=np.float64)
             if motion_radius.shape != (self._radius.shape[0],):
@@ -452,9 +458,7 @@ class CandidateNarrowPhase:
         and ``unbounded`` (a one-element int32 device array) counts the radii that are not
         finite: the caller then drops the kept pairs (:meth:`drop_reach`), as :meth:`near_count`
         keeps none for them. Returns as :meth:`near_count`."""
-        max_distance = float(max_distance)
-        if not (np.isfinite(max_distance) and max_distance >= 0.0):
-            raise ValueError(f"max_distance: expected a finite distance >= 0, got {max_distance!r}")
+        max_distance = _distance(max_distance)
         c = self._cover
         if c is None or c[4] != self.broad_phase.query_count:
             raise RuntimeError("near_count_covered needs the cover of its positions' motion (cover() first)")

@@ -96,7 +96,7 @@ class ContactDetection:
         (self._mesh_counter, self._plane_counter, self._kept_counter, self._repeated_counter,
          self._approach_counter, contacts.counter, self._uncovered, self._beyond_reach, _, _, self.go,
          self._cover_outside, _, _, self._unbounded) = (self.counts[i:i + 1] for i in range(len(COUNT_SLOTS)))
-        self._cover_pending = None  # (x0, x1, delta) of a cover test not read yet (cover())
+        self._cover_pending = None  # (x0, x1, delta, slack) of a cover test not read yet (cover())
         self.bound = 0  # the last sorted pass's bound on its hits (the launches' dimension)
         self.host_tested_rounds = 0  # CCD rounds whose cover was tested on the host (statistics)
         self.broad_phase = None
@@ -195,7 +195,7 @@ class ContactDetection:
         if self.narrow.cover_test_device(x0_w, x1_pred_w, margin, slack, self._cover_outside):
             peeked = peek(self._cover_outside)
             if peeked is None:
-                self._cover_pending = (x0_w, x1_pred_w, delta)
+                self._cover_pending = (x0_w, x1_pred_w, delta, slack)
                 self.narrow.assume_kept(slack)
                 return
             if not peeked[0]:
@@ -222,11 +222,12 @@ class ContactDetection:
         pending, self._cover_pending = self._cover_pending, None
         if pending is None:
             return False
+        x0_w, x1_pred_w, delta, slack = pending
         if not counts[_COVER_OUTSIDE]:
-            self.narrow.keep_cover(COVER_SLACK * COVER_SCALES[self.cover_scale] * pending[2])
+            self.narrow.keep_cover(slack)
             return False
         self.narrow.discard_pass()
-        self._fresh_cover(*pending)
+        self._fresh_cover(x0_w, x1_pred_w, delta)
         return True
 
     def sorted_hits(self, mesh_count: int, plane_count: int, time_mode: int, max_distance: float = -1.0) -> None:
@@ -385,13 +386,14 @@ class ContactDetection:
             planes = self.plane_hits(x0_w, delta)
             mesh, planes = self._exact(mesh, planes)
             if not mesh + planes:
+                peeked = peek(self.counts)
                 if self._cover_pending is not None:  # no pass to read its test with: read it alone
                     zero(self._kept_counter)
                     zero(self._repeated_counter)
                     if self.read_proximity_counts() is None:
                         continue  # the pass runs again on a fresh cover
-                elif peek(self.counts) is not None:  # the CPU's exact counts (a bound of 0 keeps no pair)
-                    self._settle_reach(peek(self.counts))
+                elif peeked is not None:  # the CPU's exact counts (a bound of 0 keeps no pair)
+                    self._settle_reach(peeked)
                 return 0
             self.sorted_hits(mesh, planes, 0, reach)
             if not read:
